@@ -1,0 +1,228 @@
+"""Run configuration: every key of ``mpe3d run``, its default, and validation.
+
+A :class:`RunConfig` is built from dotted ``KEY=VALUE`` overrides and/or a YAML
+file, validated at that boundary, and can be turned back into a flat or a
+nested dict and hashed canonically (the hash is the cache key of later sweeps).
+"""
+
+from __future__ import annotations
+
+import difflib
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from .errors import MpeError
+
+SCHEMA_VERSION = 1
+
+VISIBILITY_MODES = ("all", "exact", "count", "raytrace")
+NOISE_TYPES = ("none", "distance", "correspondence")
+PROJECTIONS = ("fixed", "variable")
+INITS = ("smart", "random")
+ALIGNS = ("rigid", "ransac4")
+
+
+@dataclass(frozen=True)
+class Key:
+    """One documented configuration key."""
+
+    default: Any
+    kind: type
+    doc: str
+    choices: tuple = ()
+    optional: bool = False  # ``None`` is a valid value
+
+
+KEYS: dict[str, Key] = {
+    "shape": Key("chair", str, "bundled name, mesh path, shapenet:<synset>/<id>, pix3d:<category>/<model>, or torus|box|sphere|cone"),
+    "points": Key(512, int, "number N of points sampled area-uniformly on the surface (>= 4)"),
+    "views": Key(4, int, "number K of views (>= 2)"),
+    "angle_range": Key(360.0, float, "angle band theta_r in degrees from which the view angles are drawn (0 < theta_r <= 360)"),
+    "visibility.mode": Key("exact", str, "which points each view sees", VISIBILITY_MODES),
+    "visibility.k": Key(3, int, "mode exact: every point is visible in exactly k views (1 <= k <= views)"),
+    "visibility.count": Key(None, int, "mode count: every view keeps this many random points; null means round(0.75 * points)", optional=True),
+    "noise.type": Key("none", str, "distance: Gaussian noise on distance rows; correspondence: wrong correspondences", NOISE_TYPES),
+    "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]"),
+    "noise.amplitude": Key(0.05, float, "p: noise variance p*d (distance) or displacement radius p*d (correspondence), d = cloud diameter"),
+    "projections": Key("fixed", str, "fixed: the solver is given P^k; variable: it estimates them", PROJECTIONS),
+    "init": Key("smart", str, "smart: start from the baseline (MDS); random: uniform in the unit cube", INITS),
+    "align": Key("rigid", str, "alignment before CD/EMD: rigid (O(3) + translation) or ransac4 (paper Eq. 6-7)", ALIGNS),
+    "seed": Key(0, int, "root seed; scene, noise, solver and metrics draw from separate streams of it"),
+    "solver.name": Key("sgd", str, "solver name (see `mpe3d solvers`)"),
+}
+
+# ``solver`` alone is short for ``solver.name``.
+ALIASES = {"solver": "solver.name"}
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The resolved configuration of one run.
+
+    ``values`` maps every key of :data:`KEYS` to its value; ``solver_options``
+    holds the ``solver.<option>`` keys, validated against the solver's
+    signature.
+    """
+
+    values: Mapping[str, Any]
+    solver_options: Mapping[str, Any] = field(default_factory=dict)
+
+    def __getitem__(self, key: str) -> Any:
+        if key.startswith("solver.") and key != "solver.name":
+            return self.solver_options[key[len("solver."):]]
+        return self.values[key]
+
+    @property
+    def solver(self) -> str:
+        return self.values["solver.name"]
+
+    def flat(self) -> dict[str, Any]:
+        """All keys, dotted, solver options included."""
+        out = dict(self.values)
+        out.update({f"solver.{k}": v for k, v in sorted(self.solver_options.items())})
+        return out
+
+    def nested(self) -> dict[str, Any]:
+        """The same keys as nested dicts, as a YAML config file would hold them."""
+        out: dict[str, Any] = {}
+        for key, value in self.flat().items():
+            head, _, tail = key.partition(".")
+            if tail:
+                out.setdefault(head, {})[tail] = value
+            else:
+                out[head] = value
+        return out
+
+    def hash(self) -> str:
+        """Canonical SHA-256 of the resolved values and the schema version."""
+        payload = json.dumps({"schema": SCHEMA_VERSION, "config": self.flat()},
+                             sort_keys=True, separators=(",", ":"), allow_nan=False)
+        return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+    def replace(self, **overrides: Any) -> "RunConfig":
+        """A copy with dotted overrides applied (``replace(**{"visibility.k": 2})``)."""
+        return make_config(overrides, base=self.flat())
+
+
+def suggest(name: str, candidates) -> str:
+    """`` (did you mean 'x'?)`` for the closest candidate, or an empty string."""
+    match = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.5)
+    return f" (did you mean '{match[0]}'?)" if match else ""
+
+
+def flatten(mapping: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested dicts to dotted keys; ``{"solver": "sgd"}`` stays a leaf."""
+    out: dict[str, Any] = {}
+    for key, value in mapping.items():
+        dotted = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(flatten(value, dotted + "."))
+        else:
+            out[dotted] = value
+    return out
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``"visibility.k=2"`` -> ``("visibility.k", 2)``; values are read as YAML scalars."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise MpeError(f"expected KEY=VALUE, got '{text}'")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    return key.strip(), value
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a run config file (nested or dotted keys) into a flat dict."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise MpeError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        problem = getattr(exc, "problem", None) or "malformed YAML"
+        raise MpeError(f"malformed YAML at {where}: {problem}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, Mapping):
+        raise MpeError(f"{path}: a run config must be a mapping of keys to values")
+    return flatten(data)
+
+
+def _coerce(key: str, value: Any, spec: Key) -> Any:
+    if value is None and spec.optional:
+        return None
+    kind = spec.kind
+    if kind is int and isinstance(value, int) and not isinstance(value, bool):
+        return int(value)
+    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if kind is str and isinstance(value, str):
+        if spec.choices and value not in spec.choices:
+            raise MpeError(f"{key}: '{value}' is not one of {', '.join(spec.choices)}"
+                           f"{suggest(value, spec.choices)}")
+        return value
+    wanted = {int: "an integer", float: "a number", str: "a string"}[kind]
+    raise MpeError(f"{key}: expected {wanted}, got {value!r}")
+
+
+def _check_ranges(v: dict[str, Any]) -> None:
+    if v["points"] < 4:
+        raise MpeError(f"points: must be at least 4, got {v['points']}")
+    if v["views"] < 2:
+        raise MpeError(f"views: must be at least 2, got {v['views']}")
+    if not 0 < v["angle_range"] <= 360:
+        raise MpeError(f"angle_range: must be in (0, 360] degrees, got {v['angle_range']}")
+    if not 1 <= v["visibility.k"] <= v["views"]:
+        raise MpeError(f"visibility.k: must be between 1 and views={v['views']}, got {v['visibility.k']}")
+    count = v["visibility.count"]
+    if count is not None and not 2 <= count <= v["points"]:
+        raise MpeError(f"visibility.count: must be between 2 and points={v['points']}, got {count}")
+    if not 0.0 <= v["noise.fraction"] <= 1.0:
+        raise MpeError(f"noise.fraction: must be in [0, 1], got {v['noise.fraction']}")
+    if v["noise.amplitude"] < 0:
+        raise MpeError(f"noise.amplitude: must be >= 0, got {v['noise.amplitude']}")
+    if v["seed"] < 0:
+        raise MpeError(f"seed: must be >= 0, got {v['seed']}")
+
+
+def make_config(overrides: Mapping[str, Any] | None = None,
+                base: Mapping[str, Any] | None = None) -> RunConfig:
+    """Validate dotted overrides on top of ``base`` (itself on top of the defaults)."""
+    from solvers import validate_options  # solvers own their option lists
+
+    values = {key: spec.default for key, spec in KEYS.items()}
+    options: dict[str, Any] = {}
+    merged = dict(base or {})
+    merged.update(overrides or {})
+    merged = {ALIASES.get(k, k): v for k, v in merged.items()}
+    for key, value in merged.items():
+        if key in KEYS:
+            values[key] = _coerce(key, value, KEYS[key])
+        elif key.startswith("solver."):
+            options[key[len("solver."):]] = value
+        else:
+            raise MpeError(f"unknown key '{key}'{suggest(key, list(KEYS) + list(ALIASES))}")
+    _check_ranges(values)
+    options = validate_options(values["solver.name"], options)
+    return RunConfig(values=values, solver_options=options)
+
+
+def describe_keys() -> str:
+    """A table of every key, its default and its meaning (for ``--help`` and the README)."""
+    rows = []
+    for key, spec in KEYS.items():
+        default = "null" if spec.default is None else spec.default
+        rows.append(f"  {key:<18} {str(default):<8} {spec.doc}")
+    return "\n".join(rows)
