@@ -1,0 +1,168 @@
+"""The common solver interface: observations in, a reconstruction out.
+
+Every solver is a function ``solve(observations, *, init, random_state,
+**options) -> Reconstruction`` registered under a name with :func:`register`.
+Options are plain keyword arguments with defaults; :func:`validate_options`
+checks ``solver.<option>`` keys against that signature, in one place.
+
+Solvers import nothing from :mod:`harness`: what they may see is exactly an
+:class:`Observations`, which holds no ground truth.
+"""
+
+from __future__ import annotations
+
+import inspect
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+from harness.errors import MpeError
+
+_RESERVED = ("observations", "init", "random_state")
+
+
+@dataclass(frozen=True)
+class View:
+    """What one view shows: the ids of its visible points and their 2D distances."""
+
+    ids: np.ndarray  # (n_k,) sorted point ids
+    distances: np.ndarray  # (n_k, n_k) symmetric, zero diagonal
+
+    @property
+    def size(self) -> int:
+        return len(self.ids)
+
+
+@dataclass(frozen=True)
+class Observations:
+    """Everything a solver may use: the views and, when fixed, their projections.
+
+    ``projections`` is ``(K, 2, 3)`` with orthonormal rows in the fixed setting
+    and ``None`` in the variable one.
+    """
+
+    n_points: int
+    views: tuple[View, ...]
+    projections: np.ndarray | None = None
+
+    @property
+    def n_views(self) -> int:
+        return len(self.views)
+
+    @property
+    def fixed(self) -> bool:
+        return self.projections is not None
+
+    def visibility(self) -> np.ndarray:
+        """The visibility vectors alpha^k as a ``(K, N)`` boolean matrix."""
+        alpha = np.zeros((self.n_views, self.n_points), dtype=bool)
+        for k, view in enumerate(self.views):
+            alpha[k, view.ids] = True
+        return alpha
+
+
+@dataclass
+class Reconstruction:
+    """A solver's result: 3D points, projections, and how it got there."""
+
+    points: np.ndarray  # (N, 3)
+    projections: np.ndarray  # (K, 2, 3)
+    stress: float  # Eq. 1 stress of ``points`` and ``projections``
+    stress_history: np.ndarray  # stress per iteration (full batch)
+    iterations: int
+    termination: str
+    runtime_s: float = 0.0
+    info: dict[str, Any] = field(default_factory=dict)
+
+
+SOLVERS: dict[str, Callable[..., Reconstruction]] = {}
+
+
+def register(name: str):
+    """Register ``func`` as solver ``name``; its keyword defaults are its options."""
+    def decorator(func):
+        SOLVERS[name] = func
+        return func
+    return decorator
+
+
+def _suggest(name: str, candidates) -> str:
+    from harness.config import suggest
+    return suggest(name, candidates)
+
+
+def get_solver(name: str) -> Callable[..., Reconstruction]:
+    if name not in SOLVERS:
+        raise MpeError(f"unknown solver '{name}'{_suggest(name, SOLVERS)}; "
+                       f"known: {', '.join(sorted(SOLVERS))}")
+    return SOLVERS[name]
+
+
+def solver_options(name: str) -> dict[str, Any]:
+    """The options of solver ``name`` with their defaults."""
+    params = inspect.signature(get_solver(name)).parameters
+    return {p.name: p.default for p in params.values()
+            if p.name not in _RESERVED and p.default is not inspect.Parameter.empty}
+
+
+def _coerce_option(solver: str, key: str, value: Any, default: Any) -> Any:
+    kind = type(default)
+    ok = (value is None and default is None) or default is None
+    if kind is bool:
+        ok = isinstance(value, bool)
+    elif kind is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif kind is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        value = float(value) if ok else value
+    elif kind is str:
+        ok = isinstance(value, str)
+    if not ok:
+        raise MpeError(f"solver.{key}: expected {kind.__name__} for solver '{solver}', got {value!r}")
+    return value
+
+
+def validate_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
+    """Fill in defaults and check every ``solver.<option>`` of solver ``name``."""
+    known = solver_options(name)
+    out = dict(known)
+    for key, value in options.items():
+        if key not in known:
+            hint = _suggest(key, known)
+            listed = ", ".join(sorted(known)) or "none"
+            raise MpeError(f"unknown option 'solver.{key}' for solver '{name}'{hint}; options: {listed}")
+        out[key] = _coerce_option(name, key, value, known[key])
+    return out
+
+
+def check_observations(obs: Observations) -> None:
+    """Reject observations a solver cannot use, naming the view at fault."""
+    if obs.n_views < 2:
+        raise MpeError(f"need at least 2 views, got {obs.n_views}")
+    for k, view in enumerate(obs.views):
+        n = view.size
+        D = view.distances
+        if D.shape != (n, n):
+            raise MpeError(f"view {k}: distance matrix has shape {D.shape}, expected ({n}, {n})")
+        if not np.all(np.isfinite(D)):
+            raise MpeError(f"view {k}: distance matrix holds NaN or inf")
+        if n and (view.ids.min() < 0 or view.ids.max() >= obs.n_points):
+            raise MpeError(f"view {k}: point ids outside 0..{obs.n_points - 1}")
+    if obs.projections is not None and obs.projections.shape != (obs.n_views, 2, 3):
+        raise MpeError(f"projections have shape {obs.projections.shape}, expected ({obs.n_views}, 2, 3)")
+
+
+def solve(name: str, observations: Observations, *, init: str = "smart",
+          random_state: int | np.random.Generator | None = None,
+          **options: Any) -> Reconstruction:
+    """Run solver ``name`` and time it (``runtime_s`` is the solver alone)."""
+    func = get_solver(name)
+    options = validate_options(name, options)
+    check_observations(observations)
+    rng = np.random.default_rng(random_state)
+    start = time.perf_counter()
+    result = func(observations, init=init, random_state=rng, **options)
+    result.runtime_s = time.perf_counter() - start
+    return result

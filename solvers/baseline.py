@@ -1,0 +1,154 @@
+"""The paper's baseline: MDS on the average of the per-view distance matrices.
+
+Paper, Section "Baseline Approach": average the K pairwise distance matrices and
+embed the result in 3D with MDS. The same embedding is 3DMPE's "smart"
+initialisation.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import shortest_path
+from scipy.sparse.linalg import eigsh
+
+from .base import Observations, Reconstruction, register
+from .stress import Stress, project_rows
+
+# Neighbours per point in the graph that fills pairs never seen together.
+_GRAPH_NEIGHBOURS = 10
+
+
+def average_distances(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
+    """Mean of D^k_ij over the views where both i and j are visible.
+
+    Returns the ``(N, N)`` average and the count of views that saw each pair.
+    """
+    N = obs.n_points
+    total = np.zeros((N, N))
+    count = np.zeros((N, N), dtype=np.int32)
+    for view in obs.views:
+        block = np.ix_(view.ids, view.ids)
+        total[block] += view.distances
+        count[block] += 1
+    seen = count > 0
+    total[seen] /= count[seen]
+    return total, count
+
+
+def complete_distances(D: np.ndarray, seen: np.ndarray) -> np.ndarray:
+    """Fill the pairs no view saw together with graph (geodesic) distances.
+
+    A pair that no view shows has no distance to average. We estimate it, as
+    Isomap does, by the shortest path through each point's 10 nearest seen
+    neighbours; pairs that even the graph cannot join (a point seen in no view)
+    get the largest distance observed. Zero-filling, as the authors' code does,
+    would pull unrelated points together.
+    """
+    np.fill_diagonal(seen, True)
+    if seen.all():
+        return D
+    N = len(D)
+    near = np.where(seen, D, np.inf)
+    np.fill_diagonal(near, np.inf)
+    k = min(_GRAPH_NEIGHBOURS, N - 1)
+    nbr = np.argpartition(near, k - 1, axis=1)[:, :k]
+    w = near[np.arange(N)[:, None], nbr]
+    ok = np.isfinite(w)
+    rows = np.repeat(np.arange(N), k)[ok.ravel()]
+    graph = csr_matrix((np.maximum(w[ok], 1e-12), (rows, nbr[ok])), shape=(N, N))
+    sources = np.flatnonzero((~seen).any(axis=1))
+    geo = shortest_path(graph, method="D", directed=False, indices=sources)
+    out = D.copy()
+    fill = out[sources]
+    missing = ~seen[sources]
+    fill[missing] = geo[missing]
+    out[sources] = fill
+    out = np.minimum(out, out.T)  # the geodesic from either end
+    finite = np.isfinite(out)
+    out[~finite] = out[finite].max() if finite.any() else 1.0
+    return out
+
+
+def classical_mds(D: np.ndarray, dim: int, random_state=None) -> np.ndarray:
+    """Torgerson MDS: top-``dim`` eigenvectors of -J D^2 J / 2, by Lanczos."""
+    n = len(D)
+    B = -0.5 * D ** 2
+    B -= B.mean(axis=0)
+    B -= B.mean(axis=1)[:, None]
+    if n <= dim + 1:
+        vals, vecs = np.linalg.eigh(B)
+        vals, vecs = vals[::-1][:dim], vecs[:, ::-1][:, :dim]
+    else:
+        rng = np.random.default_rng(random_state)
+        vals, vecs = eigsh(B, k=dim, which="LA", v0=rng.standard_normal(n))
+        order = np.argsort(vals)[::-1]
+        vals, vecs = vals[order], vecs[:, order]
+    X = vecs * np.sqrt(np.maximum(vals, 0.0))
+    if X.shape[1] < dim:
+        X = np.hstack([X, np.zeros((n, dim - X.shape[1]))])
+    return X
+
+
+def fit_projections(X: np.ndarray, obs: Observations, random_state=None) -> np.ndarray:
+    """Projections P^k (orthonormal rows) that best map X to each view's MDS image.
+
+    Each view's 2D points are recovered by classical MDS up to an O(2)
+    transform; the orthogonal Procrustes problem min ||Z_k - X_k P^T|| over
+    P P^T = I then gives a starting projection. Used for the variable setting.
+    """
+    P = np.zeros((obs.n_views, 2, 3))
+    for k, view in enumerate(obs.views):
+        Z = classical_mds(view.distances, 2, random_state)
+        Xk = X[view.ids] - X[view.ids].mean(axis=0)
+        U, _, Vt = np.linalg.svd(Xk.T @ Z, full_matrices=False)  # (3x2)
+        P[k] = (U @ Vt).T
+    return project_rows(P)
+
+
+def mds_embedding(obs: Observations, method: str = "smacof", max_iter: int = 300,
+                  random_state=None) -> np.ndarray:
+    """The baseline's 3D embedding of the averaged, completed distance matrix."""
+    D, count = average_distances(obs)
+    D = complete_distances(D, count > 0)
+    X = classical_mds(D, 3, random_state)
+    if method == "smacof":
+        from sklearn.manifold import smacof
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # sklearn's FutureWarnings about defaults
+            X, _ = smacof(D, metric=True, n_components=3, init=X, n_init=1,
+                          max_iter=max_iter, random_state=0, normalized_stress=False)
+    return X
+
+
+@register("baseline")
+def solve_baseline(observations: Observations, *, init: str = "smart", random_state=None,
+                   method: str = "smacof", max_iter: int = 300) -> Reconstruction:
+    """MDS on the average of the per-view distance matrices (paper's baseline).
+
+    Parameters
+    ----------
+    method : {"smacof", "classical"}, default "smacof"
+        ``classical`` is Torgerson MDS (eigen-decomposition, by Lanczos);
+        ``smacof`` refines it with scikit-learn's metric SMACOF, the MDS the
+        paper used.
+    max_iter : int, default 300
+        SMACOF iterations.
+
+    Each pair is averaged over the views where both of its points are visible.
+    Pairs never seen together are filled by graph distances
+    (:func:`complete_distances`). ``init`` is ignored: the baseline is itself
+    the smart start. The returned projections are fitted to the embedding
+    (:func:`fit_projections`), or the given ones in the fixed setting.
+    """
+    if method not in ("smacof", "classical"):
+        from harness.errors import MpeError
+        raise MpeError(f"solver.method: '{method}' is not one of smacof, classical")
+    X = mds_embedding(observations, method, max_iter, random_state)
+    P = observations.projections if observations.fixed else fit_projections(X, observations, random_state)
+    stress = Stress(observations).value(X, P)
+    return Reconstruction(points=X, projections=P, stress=stress,
+                          stress_history=np.array([stress]), iterations=1,
+                          termination=f"MDS ({method})")
