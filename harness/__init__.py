@@ -1,0 +1,3 @@
+"""mpe3d's experiment harness: scenes, configs, metrics and the command line."""
+
+__version__ = "0.1.0"

@@ -1,0 +1,105 @@
+"""Scenes and observations: config -> ground truth -> what a solver may see.
+
+A :class:`Scene` holds the ground truth (sampled points, rotations,
+visibility). :func:`observe` turns it into :class:`solvers.Observations`,
+which hold no ground truth. Every random draw comes from its own stream of
+one ``SeedSequence``, so changing the solver (or the noise) never changes the
+points, the views or the visibility.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from scipy.spatial.distance import cdist
+
+from solvers import Observations, View
+
+from . import noise as noise_mod
+from . import shapes, views, visibility
+from .config import RunConfig
+from .errors import MpeError
+
+STREAMS = ("sampling", "views", "visibility", "noise", "solver", "metrics")
+
+
+def seed_streams(seed: int) -> dict[str, np.random.Generator]:
+    """One independent generator per stage, all split off ``seed``."""
+    children = np.random.SeedSequence(seed).spawn(len(STREAMS))
+    return {name: np.random.default_rng(child) for name, child in zip(STREAMS, children)}
+
+
+@dataclass(frozen=True)
+class Scene:
+    """The ground truth of one run."""
+
+    mesh: trimesh.Trimesh
+    points: np.ndarray  # (N, 3)
+    angles: np.ndarray  # (K, 3) degrees
+    rotations: np.ndarray  # (K, 3, 3)
+    visible: np.ndarray  # (K, N) bool: the visibility vectors
+
+    @property
+    def projections(self) -> np.ndarray:
+        return views.projections(self.rotations)
+
+    @property
+    def visible_per_view(self) -> list[int]:
+        return [int(v) for v in self.visible.sum(axis=1)]
+
+
+def _visibility(config: RunConfig, mesh, points, R, rng) -> np.ndarray:
+    K, N = len(R), len(points)
+    mode = config["visibility.mode"]
+    if mode == "all":
+        return visibility.all_visible(K, N)
+    if mode == "exact":
+        return visibility.exact(K, N, config["visibility.k"], rng)
+    if mode == "count":
+        kept = config["visibility.count"]
+        return visibility.count(K, N, kept if kept is not None else round(0.75 * N), rng)
+    return visibility.raytrace(mesh, points, R)
+
+
+def build_scene(config: RunConfig, streams=None) -> Scene:
+    """Sample the shape, draw the views and decide visibility."""
+    streams = streams or seed_streams(config["seed"])
+    mesh = shapes.load_shape(config["shape"])
+    points = shapes.sample_points(mesh, config["points"], streams["sampling"])
+    angles = views.draw_angles(config["views"], config["angle_range"], streams["views"])
+    R = views.rotations(angles)
+    alpha = _visibility(config, mesh, points, R, streams["visibility"])
+    return Scene(mesh=mesh, points=points, angles=angles, rotations=R, visible=alpha)
+
+
+def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations, dict]:
+    """The views as a solver sees them, with the configured noise applied.
+
+    Returns the observations and a dict of facts about the noise (for logs).
+    """
+    streams = streams or seed_streams(config["seed"])
+    rng = streams["noise"]
+    kind, q, p = config["noise.type"], config["noise.fraction"], config["noise.amplitude"]
+    d = noise_mod.diameter(scene.points) if kind != "none" else 0.0
+    seen = scene.points
+    facts = {"diameter": d}
+    if kind == "correspondence":
+        seen, facts["correspondences_moved"] = noise_mod.correspondence_noise(scene.points, q, p, d, rng)
+    P = scene.projections
+    out = []
+    for k in range(len(P)):
+        ids = np.flatnonzero(scene.visible[k])
+        image = seen[ids] @ P[k].T
+        D = cdist(image, image)
+        if kind == "distance":
+            D = noise_mod.distance_noise(D, q, p, d, rng)
+        out.append(View(ids=ids, distances=D))
+    empty = [k for k, v in enumerate(out) if v.size < 2]
+    if empty:
+        raise MpeError(f"views {empty} see fewer than 2 points; nothing to reconstruct "
+                       "(raise points, or change visibility)")
+    fixed = config["projections"] == "fixed"
+    return Observations(n_points=len(scene.points), views=tuple(out),
+                        projections=P.copy() if fixed else None), facts

@@ -1,0 +1,54 @@
+"""Views: the paper's Eq. 9 rotations with angles drawn from binned sub-ranges."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def rotation(alpha: float, beta: float, gamma: float) -> np.ndarray:
+    """Eq. 9: R = R_z(alpha) R_y(beta) R_x(gamma), angles in radians.
+
+    The paper prints -sin(alpha) in the bottom-left corner; that matrix is not
+    orthonormal. The product R_z R_y R_x it is written from has -sin(beta)
+    there, which is what we use.
+    """
+    ca, sa = np.cos(alpha), np.sin(alpha)
+    cb, sb = np.cos(beta), np.sin(beta)
+    cg, sg = np.cos(gamma), np.sin(gamma)
+    return np.array([
+        [ca * cb, ca * sb * sg - sa * cg, ca * sb * cg + sa * sg],
+        [sa * cb, sa * sb * sg + ca * cg, sa * sb * cg - ca * sg],
+        [-sb, cb * sg, cb * cg],
+    ])
+
+
+def angle_bins(n_views: int, angle_range: float) -> np.ndarray:
+    """The ``(K, 2)`` sub-ranges, in degrees, that view k's angles are drawn from.
+
+    For k <= K/2 the bin is [(k-1) theta_r / K, k theta_r / K]; the views past
+    K/2 take the same bins negated. For odd K the bins of K + 1 are built and
+    the last is dropped.
+    """
+    K = n_views + (n_views % 2)
+    half = K // 2
+    width = angle_range / K
+    positive = np.array([[(k - 1) * width, k * width] for k in range(1, half + 1)])
+    bins = np.vstack([positive, -positive])
+    return bins[:n_views]
+
+
+def draw_angles(n_views: int, angle_range: float, rng: np.random.Generator) -> np.ndarray:
+    """``(K, 3)`` angles (alpha, beta, gamma) in degrees, each uniform in its view's bin."""
+    bins = angle_bins(n_views, angle_range)
+    u = rng.uniform(size=(n_views, 3))
+    return bins[:, :1] + u * (bins[:, 1:] - bins[:, :1])
+
+
+def rotations(angles_deg: np.ndarray) -> np.ndarray:
+    """``(K, 3, 3)`` rotations from ``(K, 3)`` angles in degrees."""
+    return np.stack([rotation(*np.radians(a)) for a in angles_deg])
+
+
+def projections(R: np.ndarray) -> np.ndarray:
+    """Orthographic projections P^k: the first two rows of each R^k."""
+    return R[:, :2, :].copy()
