@@ -48,24 +48,23 @@ def random_projections(K: int, rng: np.random.Generator) -> np.ndarray:
 
 
 def align_to_projections(P_fit: np.ndarray, P: np.ndarray, rng: np.random.Generator,
-                         restarts: int = 8, sweeps: int = 20) -> np.ndarray:
+                         restarts: int = 8, sweeps: int = 500) -> np.ndarray:
     """The O(3) matrix Q that best explains P_fit[k] = R_k P[k] Q, with R_k in O(2).
 
     ``P_fit`` are projections fitted to an embedding in an arbitrary frame;
     ``P`` are the true ones. Alternates 2D and 3D orthogonal Procrustes from a
-    few random starts and keeps the best fit.
+    few random starts (until the fit stops improving) and keeps the best fit.
     """
     best, best_err = np.eye(3), np.inf
     for start in range(restarts):
         Q = np.eye(3) if start == 0 else project_rows(rng.standard_normal((3, 3)))
+        err = np.inf
         for _ in range(sweeps):
-            PQ = P @ Q
-            U, _, Vt = np.linalg.svd(P_fit @ np.swapaxes(PQ, 1, 2))  # (K, 2, 2)
-            R = U @ Vt
-            M = np.einsum("kai,kab,kbj->ij", P, np.swapaxes(R, 1, 2), P_fit)
-            U3, _, Vt3 = np.linalg.svd(M)
-            Q = U3 @ Vt3
-        err = float(np.sum((P_fit - R @ P @ Q) ** 2))
+            R = project_rows(P_fit @ np.swapaxes(P @ Q, 1, 2))  # (K, 2, 2)
+            Q = project_rows(np.einsum("kai,kab,kbj->ij", P, np.swapaxes(R, 1, 2), P_fit))
+            previous, err = err, float(np.sum((P_fit - R @ P @ Q) ** 2))
+            if previous - err < 1e-15:
+                break
         if err < best_err:
             best, best_err = Q, err
     return best

@@ -5,7 +5,7 @@
 For one view with image points y_i = P^k x_i, write e_ij = ||y_i - y_j|| and
 B_ij = w_ij (D_ij - e_ij) / e_ij (w is the minibatch mask, symmetric). Then
 
-    dS/dy_i = -sum_j B_ij (y_i - y_j)   i.e.   G_Y = -(diag(B 1) - B) Y,
+    dS/dy_i = -2 sum_j B_ij (y_i - y_j)   i.e.   G_Y = -2 (diag(B 1) - B) Y,
 
 and the chain rule through Y = X_vis P^T gives G_X[vis] += G_Y P and
 G_P = G_Y^T X_vis. Everything is dense matrix algebra over row blocks of the
@@ -58,7 +58,7 @@ class Stress:
             total += float(np.einsum("ij,ij->", r, r))
             if want_grad:
                 r /= e  # now B
-                grad[a:b] = r @ Y - r.sum(axis=1)[:, None] * Y[a:b]
+                grad[a:b] = 2.0 * (r @ Y - r.sum(axis=1)[:, None] * Y[a:b])
         # Each pair i > j appears twice in the full matrix.
         return 0.5 * total, grad
 
