@@ -105,8 +105,16 @@ class RunConfig:
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
     def replace(self, **overrides: Any) -> "RunConfig":
-        """A copy with dotted overrides applied (``replace(**{"visibility.k": 2})``)."""
-        return make_config(overrides, base=self.flat())
+        """A copy with dotted overrides applied (``replace(**{"visibility.k": 2})``).
+
+        Switching solver drops the old solver's options: they need not exist
+        on the new one.
+        """
+        overrides = {ALIASES.get(k, k): v for k, v in overrides.items()}
+        base = self.flat()
+        if overrides.get("solver.name", self.solver) != self.solver:
+            base = dict(self.values)
+        return make_config(overrides, base=base)
 
 
 def suggest(name: str, candidates) -> str:
@@ -224,5 +232,6 @@ def describe_keys() -> str:
     rows = []
     for key, spec in KEYS.items():
         default = "null" if spec.default is None else spec.default
-        rows.append(f"  {key:<18} {str(default):<8} {spec.doc}")
+        choices = f" ({' | '.join(spec.choices)})" if spec.choices else ""
+        rows.append(f"  {key:<18} {str(default):<8} {spec.doc}{choices}")
     return "\n".join(rows)
