@@ -1,0 +1,35 @@
+"""Helpers shared by the tests."""
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+
+from harness.config import make_config
+from harness.observe import build_scene, observe, seed_streams
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+
+
+def scene_and_observations(**overrides):
+    """A scene and its observations for a small default config."""
+    config = make_config({"shape": "torus", "points": 128, **overrides})
+    streams = seed_streams(config["seed"])
+    scene = build_scene(config, streams)
+    obs, _ = observe(scene, config, streams)
+    return config, scene, obs
+
+
+def mpe3d_command() -> list[str]:
+    """The installed ``mpe3d`` console script, as a user runs it (falls back to
+    ``python -m harness.cli`` when the package is not installed)."""
+    script = Path(sys.executable).parent / "mpe3d"
+    return [str(script)] if script.exists() else [sys.executable, "-m", "harness.cli"]
+
+
+def run_cli(*args, cwd=None):
+    """Run ``mpe3d`` in a subprocess and capture what a user would see."""
+    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    return subprocess.run([*mpe3d_command(), *args], capture_output=True,
+                          text=True, cwd=cwd, env=env, timeout=300)

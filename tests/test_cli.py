@@ -1,0 +1,82 @@
+import json
+
+import numpy as np
+import pytest
+import trimesh
+from PIL import Image
+
+from .helpers import run_cli
+
+CONTRACT = {"config", "cd", "cd_mean", "emd", "emd_mean", "roa", "stress", "iterations",
+            "runtime_s", "visible_per_view"}
+
+
+def test_json_contract(tmp_path):
+    out = run_cli("run", "shape=torus", "points=128", "views=3", "visibility.k=2",
+                  "solver.max_iter=50", "--json")
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.strip().splitlines()
+    assert len(lines) == 1
+    result = json.loads(lines[0])
+    assert CONTRACT <= set(result)
+    assert result["config"]["points"] == 128 and result["config"]["solver"]["max_iter"] == 50
+    assert len(result["visible_per_view"]) == 3 and sum(result["visible_per_view"]) == 2 * 128
+    assert result["iterations"] <= 50 and result["runtime_s"] > 0
+    assert all(np.isfinite(result[k]) for k in ("cd", "emd", "roa", "stress"))
+
+
+def test_config_file_and_overrides(tmp_path):
+    cfg = tmp_path / "c.yaml"
+    cfg.write_text("shape: box\npoints: 64\nsolver: {name: baseline}\n")
+    out = run_cli("run", "--config", str(cfg), "points=80", "--json")
+    assert out.returncode == 0, out.stderr
+    result = json.loads(out.stdout)
+    assert result["config"]["shape"] == "box" and result["config"]["points"] == 80
+    assert result["config"]["solver"]["name"] == "baseline"
+
+
+def test_readable_summary_and_outputs(tmp_path):
+    out = run_cli("run", "shape=torus", "points=100", "--out", str(tmp_path / "o"))
+    assert out.returncode == 0, out.stderr
+    assert "roa=" in out.stdout and "visible per view" in out.stdout
+    truth = trimesh.load(tmp_path / "o" / "ground_truth.ply")
+    recon = trimesh.load(tmp_path / "o" / "reconstruction.ply")
+    assert len(truth.vertices) == len(recon.vertices) == 100
+    image = np.asarray(Image.open(tmp_path / "o" / "comparison.png").convert("L"))
+    assert image.shape[0] > 100 and image.std() > 5  # not blank
+
+
+@pytest.mark.parametrize("args, message", [
+    (["viws=3"], "unknown key 'viws' (did you mean 'views'?)"),
+    (["points=abc"], "points: expected an integer, got 'abc'"),
+    (["points=3"], "points: must be at least 4"),
+    (["views=1"], "views: must be at least 2"),
+    (["views=3", "visibility.k=5"], "visibility.k: must be between 1 and views=3"),
+    (["shape=/nowhere/mesh.ply"], "no mesh file at /nowhere/mesh.ply"),
+    (["solver=nope"], "unknown solver 'nope'"),
+    (["points"], "expected KEY=VALUE, got 'points'"),
+    (["--config", "/nowhere.yaml"], "cannot read config file"),
+    (["--bogus"], "unrecognized arguments: --bogus"),
+])
+def test_bad_input_is_one_line_exit_2(args, message):
+    out = run_cli("run", *args)
+    assert out.returncode == 2
+    assert out.stdout == ""
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0] and lines[0].startswith("mpe3d: error:")
+    assert "Traceback" not in out.stderr
+
+
+def test_unreadable_mesh_is_one_line(tmp_path):
+    bad = tmp_path / "broken.ply"
+    bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 99\nend_header\n\x00")
+    out = run_cli("run", f"shape={bad}")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "broken.ply" in out.stderr and len(out.stderr.strip().splitlines()) == 1
+
+
+def test_listing_commands():
+    shapes = run_cli("shapes")
+    assert shapes.returncode == 0 and "guitar" in shapes.stdout and "rifle" in shapes.stdout
+    listed = run_cli("solvers")
+    assert listed.returncode == 0 and "sgd" in listed.stdout and "baseline" in listed.stdout

@@ -1,0 +1,78 @@
+import subprocess
+import sys
+
+import pytest
+
+from harness.config import load_yaml, make_config, parse_override
+from harness.errors import MpeError
+
+
+def test_defaults_are_complete_and_documented():
+    cfg = make_config()
+    flat = cfg.flat()
+    assert flat["shape"] == "chair" and flat["points"] == 512 and flat["views"] == 4
+    assert flat["solver.name"] == "sgd" and flat["solver.max_iter"] == 300
+    assert cfg.nested()["visibility"] == {"mode": "exact", "k": 3, "count": None}
+
+
+def test_overrides_parse_as_yaml_scalars():
+    assert parse_override("points=256") == ("points", 256)
+    assert parse_override("angle_range=90") == ("angle_range", 90)
+    assert parse_override("shape=chair") == ("shape", "chair")
+    cfg = make_config(dict(parse_override(x) for x in ["solver=baseline", "angle_range=90"]))
+    assert cfg.solver == "baseline" and cfg["angle_range"] == 90.0
+
+
+def test_hash_is_canonical_and_stable_across_processes():
+    a = make_config({"points": 256, "solver.max_iter": 100})
+    b = make_config({"solver.max_iter": 100, "points": 256})
+    assert a.hash() == b.hash()
+    assert a.hash() != make_config({"points": 256}).hash()
+    code = ("from harness.config import make_config;"
+            "print(make_config({'points': 256, 'solver.max_iter': 100}).hash())")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         env={"PYTHONHASHSEED": "123", "PATH": ""})
+    assert out.stdout.strip() == a.hash()
+
+
+def test_solver_change_keeps_the_other_values():
+    cfg = make_config({"points": 300}).replace(**{"solver": "baseline"})
+    assert cfg["points"] == 300 and cfg.solver == "baseline"
+    assert "solver.max_iter" in cfg.flat() and "solver.c" not in cfg.flat()
+
+
+@pytest.mark.parametrize("overrides, message", [
+    ({"viws": 3}, "unknown key 'viws' (did you mean 'views'?)"),
+    ({"points": "many"}, "points: expected an integer, got 'many'"),
+    ({"points": 3}, "points: must be at least 4, got 3"),
+    ({"views": 1}, "views: must be at least 2, got 1"),
+    ({"views": 3, "visibility.k": 4}, "visibility.k: must be between 1 and views=3, got 4"),
+    ({"visibility.mode": "exactly"}, "'exactly' is not one of all, exact, count, raytrace (did you mean 'exact'?)"),
+    ({"solver": "sdg"}, "unknown solver 'sdg' (did you mean 'sgd'?)"),
+    ({"solver.max_itr": 5}, "unknown option 'solver.max_itr' for solver 'sgd' (did you mean 'max_iter'?)"),
+    ({"solver.max_iter": 2.5}, "solver.max_iter: expected int"),
+    ({"noise.fraction": 1.5}, "noise.fraction: must be in [0, 1]"),
+])
+def test_bad_values_name_the_culprit(overrides, message):
+    with pytest.raises(MpeError) as err:
+        make_config(overrides)
+    assert message in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_yaml_config_nested_or_dotted(tmp_path):
+    path = tmp_path / "run.yaml"
+    path.write_text("shape: torus\nvisibility:\n  mode: all\nsolver:\n  name: sgd\n  max_iter: 50\n"
+                    "noise.type: distance\n")
+    cfg = make_config(load_yaml(path))
+    assert cfg["visibility.mode"] == "all" and cfg["solver.max_iter"] == 50
+    assert cfg["noise.type"] == "distance"
+
+
+def test_malformed_yaml_names_file_and_line(tmp_path):
+    path = tmp_path / "bad.yaml"
+    path.write_text("shape: torus\npoints: [1, 2\nviews: 3\n")
+    with pytest.raises(MpeError, match=r"malformed YAML at .*bad.yaml:\d+"):
+        load_yaml(path)
+    with pytest.raises(MpeError, match="cannot read config file"):
+        load_yaml(tmp_path / "missing.yaml")

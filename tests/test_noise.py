@@ -1,0 +1,45 @@
+import numpy as np
+from scipy.spatial.distance import cdist, pdist
+
+from harness.noise import correspondence_noise, diameter, distance_noise
+
+
+def test_diameter_matches_brute_force(rng):
+    pts = rng.normal(size=(500, 3))
+    assert np.isclose(diameter(pts), pdist(pts).max())
+
+
+def test_distance_noise_rows_and_variance(rng):
+    n, q, p, d = 400, 0.25, 0.05, 2.0
+    D = np.full((n, n), 100.0)  # far from 0, so clipping never acts
+    np.fill_diagonal(D, 0.0)
+    noisy = distance_noise(D, q, p, d, rng)
+    assert np.allclose(noisy, noisy.T) and np.all(np.diag(noisy) == 0)
+    changed = np.abs(noisy - D) > 0
+    np.fill_diagonal(changed, False)
+    rows = np.flatnonzero(changed.sum(axis=1) > n / 2)
+    assert len(rows) == round(q * n)
+    # an entry in exactly one noisy row carries variance p d / 4 after symmetrisation
+    clean = np.setdiff1d(np.arange(n), rows)
+    sample = (noisy - D)[np.ix_(rows, clean)].ravel()
+    assert abs(sample.mean()) < 0.01
+    assert abs(sample.var() / (p * d / 4) - 1) < 0.05  # ~30k draws: 5% is > 5 sigma
+    assert np.all(noisy[np.ix_(clean, clean)] == D[np.ix_(clean, clean)])
+
+
+def test_distance_noise_clips_negatives(rng):
+    D = cdist(*(2 * [rng.uniform(size=(50, 2))]))
+    noisy = distance_noise(D, 1.0, 1.0, 1.0, rng)
+    assert noisy.min() >= 0.0
+
+
+def test_correspondence_noise_moves_to_near_points(rng):
+    pts = rng.uniform(size=(1000, 3))
+    q, p, d = 0.3, 0.1, diameter(pts)  # ~17 expected neighbours within p d
+    seen, moved = correspondence_noise(pts, q, p, d, rng)
+    changed = np.flatnonzero(np.any(seen != pts, axis=1))
+    assert len(changed) == moved and moved <= round(q * 1000)
+    assert moved > 0.9 * round(q * 1000)  # nearly every point has a neighbour within p d
+    assert np.all(np.linalg.norm(seen[changed] - pts[changed], axis=1) <= p * d + 1e-12)
+    # each moved point sits exactly on another sampled point
+    assert np.all(cdist(seen[changed], pts).min(axis=1) == 0)
