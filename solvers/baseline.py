@@ -14,6 +14,8 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import shortest_path
 from scipy.sparse.linalg import eigsh
 
+from harness.errors import MpeError
+
 from .base import Observations, Reconstruction, register
 from .stress import Stress, project_rows
 
@@ -144,7 +146,6 @@ def solve_baseline(observations: Observations, *, init: str = "smart", random_st
     (:func:`fit_projections`), or the given ones in the fixed setting.
     """
     if method not in ("smacof", "classical"):
-        from harness.errors import MpeError
         raise MpeError(f"solver.method: '{method}' is not one of smacof, classical")
     X = mds_embedding(observations, method, max_iter, random_state)
     P = observations.projections if observations.fixed else fit_projections(X, observations, random_state)

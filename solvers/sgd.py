@@ -35,6 +35,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.distance import cdist
 
+from harness.errors import MpeError
+
 from .base import Observations, Reconstruction, register
 from .baseline import fit_projections, mds_embedding
 from .stress import Stress, project_rows
@@ -148,7 +150,6 @@ def solve_sgd(observations: Observations, *, init: str = "smart", random_state=N
     baseline_method : {"smacof", "classical"}, default "smacof"
         The MDS behind the smart start.
     """
-    from harness.errors import MpeError
     if step not in ("mm", "bb"):
         raise MpeError(f"solver.step: '{step}' is not one of mm, bb")
     if not 0.0 < c <= 1.0:
@@ -169,21 +170,15 @@ def solve_sgd(observations: Observations, *, init: str = "smart", random_state=N
     full = stress.value(X, P)
     history = [full]
     best = (full, X, P)
-    termination = "max_iter reached"
     masks = batch()
-    s, gX, gP = evaluate(X, P, masks)
+    _, gX, gP = evaluate(X, P, masks)
     step_X = _Step(step, _first_step(X, gX))
     step_P = None if fixed else _Step(step, _first_step(P, gP))
-    iterations = 0
-    for iterations in range(1, max_iter + 1):
+    termination = "max_iter reached"
+    while len(history) <= max_iter:
         grad_norm = np.sqrt(np.sum(gX ** 2) + (0.0 if fixed else np.sum(gP ** 2)))
-        if full < tol:
-            termination = "stress below tol"
-            iterations -= 1
-            break
-        if grad_norm < tol:
-            termination = "gradient below tol"
-            iterations -= 1
+        if full < tol or grad_norm < tol:
+            termination = "stress below tol" if full < tol else "gradient below tol"
             break
         X_new = X - step_X.mu * gX
         P_new = P if fixed else project_rows(P - step_P.mu * gP)
@@ -191,6 +186,7 @@ def solve_sgd(observations: Observations, *, init: str = "smart", random_state=N
         if not np.isfinite(s_new):
             termination = "non-finite stress"
             break
+        # Both gradients of a step come from the same minibatch xi_t (Algorithm 1).
         step_X.update(X_new - X, gX_new - gX)
         if not fixed:
             step_P.update(P_new - P, gP_new - gP)
@@ -206,5 +202,5 @@ def solve_sgd(observations: Observations, *, init: str = "smart", random_state=N
             _, gX, gP = evaluate(X, P, masks)
     full, X, P = best
     return Reconstruction(points=X, projections=P, stress=full,
-                          stress_history=np.asarray(history), iterations=iterations,
+                          stress_history=np.asarray(history), iterations=len(history) - 1,
                           termination=termination, info={"step_X": step_X.mu})
