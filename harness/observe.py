@@ -16,6 +16,7 @@ import trimesh
 from scipy.spatial.distance import cdist
 
 from solvers import Observations, View
+from solvers.base import require_memory
 
 from . import noise as noise_mod
 from . import shapes, views, visibility
@@ -88,6 +89,9 @@ def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations
     if kind == "correspondence":
         seen, facts["correspondences_moved"] = noise_mod.correspondence_noise(scene.points, q, p, d, rng)
     P = scene.projections
+    largest = int(scene.visible.sum(axis=1).max())
+    require_memory(3 * 8 * largest ** 2,
+                   f"points={len(scene.points)}: a view's {largest}x{largest} distance matrix and its copies")
     out = []
     for k in range(len(P)):
         ids = np.flatnonzero(scene.visible[k])

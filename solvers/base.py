@@ -12,6 +12,7 @@ Solvers import nothing from :mod:`harness`: what they may see is exactly an
 from __future__ import annotations
 
 import inspect
+import os
 import time
 from dataclasses import dataclass, field
 from typing import Any, Callable
@@ -135,6 +136,17 @@ def validate_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
             raise MpeError(f"unknown option 'solver.{key}' for solver '{name}'{hint}; options: {listed}")
         out[key] = _coerce_option(name, key, value, known[key])
     return out
+
+
+def require_memory(nbytes: float, what: str) -> None:
+    """Refuse, in one line, work whose arrays cannot fit in this machine's memory."""
+    try:
+        available = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):  # not a POSIX system: let numpy decide
+        return
+    if nbytes > available:
+        raise MpeError(f"{what} need about {nbytes / 2**30:.0f} GiB, "
+                       f"more than this machine's {available / 2**30:.0f} GiB")
 
 
 def check_observations(obs: Observations) -> None:

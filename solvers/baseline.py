@@ -16,7 +16,7 @@ from scipy.sparse.linalg import eigsh
 
 from harness.errors import MpeError
 
-from .base import Observations, Reconstruction, register
+from .base import Observations, Reconstruction, register, require_memory
 from .stress import Stress, project_rows
 
 # Neighbours per point in the graph that fills pairs never seen together.
@@ -29,6 +29,7 @@ def average_distances(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
     Returns the ``(N, N)`` average and the count of views that saw each pair.
     """
     N = obs.n_points
+    require_memory(6 * 8 * N * N, f"points={N}: the baseline's dense {N}x{N} distance matrices")
     total = np.zeros((N, N))
     count = np.zeros((N, N), dtype=np.int32)
     for view in obs.views:

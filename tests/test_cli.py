@@ -80,3 +80,24 @@ def test_listing_commands():
     assert shapes.returncode == 0 and "guitar" in shapes.stdout and "rifle" in shapes.stdout
     listed = run_cli("solvers")
     assert listed.returncode == 0 and "sgd" in listed.stdout and "baseline" in listed.stdout
+
+
+def test_too_many_points_for_memory_is_one_line():
+    out = run_cli("run", "shape=box", "points=300000", "visibility.mode=all")
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "GiB, more than this machine's" in out.stderr
+
+
+@pytest.mark.parametrize("args, check", [
+    (["visibility.mode=count", "visibility.count=50"], lambda r: r["visible_per_view"] == [50] * 4),
+    (["visibility.mode=all", "align=ransac4", "solver=baseline"],
+     lambda r: r["visible_per_view"] == [80] * 4 and r["config"]["align"] == "ransac4"),
+    (["visibility.mode=raytrace", "shape=chair"], lambda r: all(0 < v < 80 for v in r["visible_per_view"])),
+    (["noise.type=correspondence", "noise.fraction=0.5", "projections=variable"],
+     lambda r: r["config"]["noise"]["type"] == "correspondence"),
+    (["init=random", "solver.max_iter=5", "views=2", "visibility.k=2"], lambda r: r["iterations"] <= 5),
+])
+def test_run_modes_end_to_end(args, check):
+    out = run_cli("run", "shape=torus", "points=80", *args, "--json")
+    assert out.returncode == 0, out.stderr
+    assert check(json.loads(out.stdout))
