@@ -8,7 +8,7 @@ import logging
 import sys
 from pathlib import Path
 
-from .config import describe_keys, load_yaml, make_config, parse_override
+from .config import config_from_file, describe_keys, make_config, parse_override
 from .errors import MpeError
 
 
@@ -39,13 +39,15 @@ def _print_summary(summary: dict) -> None:
 def cmd_run(args) -> int:
     from .execute import run, write_outputs
 
-    values = load_yaml(args.config) if args.config else {}
-    values.update(dict(parse_override(item) for item in args.overrides))
-    config = make_config(values)
+    overrides = dict(parse_override(item) for item in args.overrides)
+    config = config_from_file(args.config, overrides) if args.config else make_config(overrides)
     result = run(config)
     summary = result.summary()
     if args.out:
-        written = write_outputs(result, Path(args.out))
+        try:
+            written = write_outputs(result, Path(args.out))
+        except OSError as exc:
+            raise MpeError(f"cannot write outputs to {args.out}: {exc.strerror or exc}") from None
         summary["outputs"] = [str(p) for p in written]
     if args.json:
         print(json.dumps(summary))

@@ -147,8 +147,19 @@ def parse_override(text: str) -> tuple[str, Any]:
     return key.strip(), value
 
 
-def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a run config file (nested or dotted keys) into a flat dict."""
+def _key_lines(node, prefix: str = "", out: dict[str, int] | None = None) -> dict[str, int]:
+    """Dotted key -> the 1-based line where it stands in a composed YAML mapping."""
+    out = {} if out is None else out
+    if isinstance(node, yaml.MappingNode):
+        for key_node, value_node in node.value:
+            dotted = f"{prefix}{key_node.value}"
+            out[dotted] = key_node.start_mark.line + 1
+            _key_lines(value_node, dotted + ".", out)
+    return out
+
+
+def read_yaml(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
+    """A YAML mapping (nested or dotted keys) as a flat dict, and each key's line."""
     path = Path(path)
     try:
         text = path.read_text()
@@ -156,16 +167,39 @@ def load_yaml(path: str | Path) -> dict[str, Any]:
         raise MpeError(f"cannot read config file {path}: {exc.strerror or exc}") from None
     try:
         data = yaml.safe_load(text)
+        lines = _key_lines(yaml.compose(text))
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
         problem = getattr(exc, "problem", None) or "malformed YAML"
         raise MpeError(f"malformed YAML at {where}: {problem}") from None
     if data is None:
-        return {}
+        return {}, {}
     if not isinstance(data, Mapping):
         raise MpeError(f"{path}: a run config must be a mapping of keys to values")
-    return flatten(data)
+    return flatten(data), lines
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a run config file (nested or dotted keys) into a flat dict."""
+    return read_yaml(path)[0]
+
+
+def config_from_file(path: str | Path, overrides: Mapping[str, Any] | None = None) -> RunConfig:
+    """A run config from a YAML file, with ``overrides`` on top.
+
+    The file is validated on its own first, so an error in it names
+    ``file:line``.
+    """
+    values, lines = read_yaml(path)
+    try:
+        make_config(values)
+    except MpeError as exc:
+        spelled = {name: alias for alias, name in ALIASES.items()}  # "solver.name" may be "solver:"
+        line = lines.get(exc.key) or lines.get(spelled.get(exc.key))
+        where = f"{path}:{line}" if line else str(path)
+        raise MpeError(f"{exc} at {where}", key=exc.key) from None
+    return make_config({**values, **(overrides or {})})
 
 
 def _coerce(key: str, value: Any, spec: Key) -> Any:
@@ -179,30 +213,33 @@ def _coerce(key: str, value: Any, spec: Key) -> Any:
     if kind is str and isinstance(value, str):
         if spec.choices and value not in spec.choices:
             raise MpeError(f"{key}: '{value}' is not one of {', '.join(spec.choices)}"
-                           f"{suggest(value, spec.choices)}")
+                           f"{suggest(value, spec.choices)}", key=key)
         return value
     wanted = {int: "an integer", float: "a number", str: "a string"}[kind]
-    raise MpeError(f"{key}: expected {wanted}, got {value!r}")
+    raise MpeError(f"{key}: expected {wanted}, got {value!r}", key=key)
 
 
 def _check_ranges(v: dict[str, Any]) -> None:
+    def bad(key: str, rule: str) -> MpeError:
+        return MpeError(f"{key}: {rule}, got {v[key]}", key=key)
+
     if v["points"] < 4:
-        raise MpeError(f"points: must be at least 4, got {v['points']}")
+        raise bad("points", "must be at least 4")
     if v["views"] < 2:
-        raise MpeError(f"views: must be at least 2, got {v['views']}")
+        raise bad("views", "must be at least 2")
     if not 0 < v["angle_range"] <= 360:
-        raise MpeError(f"angle_range: must be in (0, 360] degrees, got {v['angle_range']}")
+        raise bad("angle_range", "must be in (0, 360] degrees")
     if not 1 <= v["visibility.k"] <= v["views"]:
-        raise MpeError(f"visibility.k: must be between 1 and views={v['views']}, got {v['visibility.k']}")
+        raise bad("visibility.k", f"must be between 1 and views={v['views']}")
     count = v["visibility.count"]
     if count is not None and not 2 <= count <= v["points"]:
-        raise MpeError(f"visibility.count: must be between 2 and points={v['points']}, got {count}")
+        raise bad("visibility.count", f"must be between 2 and points={v['points']}")
     if not 0.0 <= v["noise.fraction"] <= 1.0:
-        raise MpeError(f"noise.fraction: must be in [0, 1], got {v['noise.fraction']}")
+        raise bad("noise.fraction", "must be in [0, 1]")
     if v["noise.amplitude"] < 0:
-        raise MpeError(f"noise.amplitude: must be >= 0, got {v['noise.amplitude']}")
+        raise bad("noise.amplitude", "must be >= 0")
     if v["seed"] < 0:
-        raise MpeError(f"seed: must be >= 0, got {v['seed']}")
+        raise bad("seed", "must be >= 0")
 
 
 def make_config(overrides: Mapping[str, Any] | None = None,
@@ -221,7 +258,7 @@ def make_config(overrides: Mapping[str, Any] | None = None,
         elif key.startswith("solver."):
             options[key[len("solver."):]] = value
         else:
-            raise MpeError(f"unknown key '{key}'{suggest(key, list(KEYS) + list(ALIASES))}")
+            raise MpeError(f"unknown key '{key}'{suggest(key, list(KEYS) + list(ALIASES))}", key=key)
     _check_ranges(values)
     options = validate_options(values["solver.name"], options)
     return RunConfig(values=values, solver_options=options)

@@ -97,7 +97,7 @@ def _suggest(name: str, candidates) -> str:
 def get_solver(name: str) -> Callable[..., Reconstruction]:
     if name not in SOLVERS:
         raise MpeError(f"unknown solver '{name}'{_suggest(name, SOLVERS)}; "
-                       f"known: {', '.join(sorted(SOLVERS))}")
+                       f"known: {', '.join(sorted(SOLVERS))}", key="solver.name")
     return SOLVERS[name]
 
 
@@ -121,7 +121,8 @@ def _coerce_option(solver: str, key: str, value: Any, default: Any) -> Any:
     elif kind is str:
         ok = isinstance(value, str)
     if not ok:
-        raise MpeError(f"solver.{key}: expected {kind.__name__} for solver '{solver}', got {value!r}")
+        raise MpeError(f"solver.{key}: expected {kind.__name__} for solver '{solver}', got {value!r}",
+                       key=f"solver.{key}")
     return value
 
 
@@ -133,7 +134,8 @@ def validate_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
         if key not in known:
             hint = _suggest(key, known)
             listed = ", ".join(sorted(known)) or "none"
-            raise MpeError(f"unknown option 'solver.{key}' for solver '{name}'{hint}; options: {listed}")
+            raise MpeError(f"unknown option 'solver.{key}' for solver '{name}'{hint}; options: {listed}",
+                           key=f"solver.{key}")
         out[key] = _coerce_option(name, key, value, known[key])
     return out
 

@@ -101,3 +101,11 @@ def test_run_modes_end_to_end(args, check):
     out = run_cli("run", "shape=torus", "points=80", *args, "--json")
     assert out.returncode == 0, out.stderr
     assert check(json.loads(out.stdout))
+
+
+def test_unwritable_out_dir_is_one_line(tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    out = run_cli("run", "shape=torus", "points=40", "--out", str(blocker / "sub"))
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert "cannot write outputs to" in out.stderr

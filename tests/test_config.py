@@ -3,7 +3,7 @@ import sys
 
 import pytest
 
-from harness.config import load_yaml, make_config, parse_override
+from harness.config import config_from_file, load_yaml, make_config, parse_override
 from harness.errors import MpeError
 
 
@@ -76,3 +76,24 @@ def test_malformed_yaml_names_file_and_line(tmp_path):
         load_yaml(path)
     with pytest.raises(MpeError, match="cannot read config file"):
         load_yaml(tmp_path / "missing.yaml")
+
+
+@pytest.mark.parametrize("text, message", [
+    ("shape: torus\nviws: 3\n", "unknown key 'viws' (did you mean 'views'?) at {}:2"),
+    ("shape: torus\nvisibility:\n  mode: all\n  k: many\n", "visibility.k: expected an integer, got 'many' at {}:4"),
+    ("solver: sdg\n", "unknown solver 'sdg' (did you mean 'sgd'?); known: baseline, sgd at {}:1"),
+    ("points: 64\nsolver:\n  name: sgd\n  max_itr: 5\n", "unknown option 'solver.max_itr' for solver 'sgd'"),
+])
+def test_config_file_errors_name_file_and_line(tmp_path, text, message):
+    path = tmp_path / "run.yaml"
+    path.write_text(text)
+    with pytest.raises(MpeError) as err:
+        config_from_file(path)
+    assert message.format(path) in str(err.value)
+
+
+def test_config_file_then_overrides(tmp_path):
+    path = tmp_path / "run.yaml"
+    path.write_text("shape: torus\npoints: 64\n")
+    cfg = config_from_file(path, {"points": 100})
+    assert cfg["shape"] == "torus" and cfg["points"] == 100
