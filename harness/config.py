@@ -180,11 +180,6 @@ def read_yaml(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
     return flatten(data), lines
 
 
-def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a run config file (nested or dotted keys) into a flat dict."""
-    return read_yaml(path)[0]
-
-
 def config_from_file(path: str | Path, overrides: Mapping[str, Any] | None = None) -> RunConfig:
     """A run config from a YAML file, with ``overrides`` on top.
 

@@ -164,6 +164,8 @@ def check_observations(obs: Observations) -> None:
             raise MpeError(f"view {k}: distance matrix holds NaN or inf")
         if n and (view.ids.min() < 0 or view.ids.max() >= obs.n_points):
             raise MpeError(f"view {k}: point ids outside 0..{obs.n_points - 1}")
+        if len(np.unique(view.ids)) != n:
+            raise MpeError(f"view {k}: a point id appears twice")
     if obs.projections is not None and obs.projections.shape != (obs.n_views, 2, 3):
         raise MpeError(f"projections have shape {obs.projections.shape}, expected ({obs.n_views}, 2, 3)")
 

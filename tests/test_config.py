@@ -3,7 +3,7 @@ import sys
 
 import pytest
 
-from harness.config import config_from_file, load_yaml, make_config, parse_override
+from harness.config import config_from_file, make_config, parse_override, read_yaml
 from harness.errors import MpeError
 
 
@@ -64,7 +64,7 @@ def test_yaml_config_nested_or_dotted(tmp_path):
     path = tmp_path / "run.yaml"
     path.write_text("shape: torus\nvisibility:\n  mode: all\nsolver:\n  name: sgd\n  max_iter: 50\n"
                     "noise.type: distance\n")
-    cfg = make_config(load_yaml(path))
+    cfg = config_from_file(path)
     assert cfg["visibility.mode"] == "all" and cfg["solver.max_iter"] == 50
     assert cfg["noise.type"] == "distance"
 
@@ -73,9 +73,9 @@ def test_malformed_yaml_names_file_and_line(tmp_path):
     path = tmp_path / "bad.yaml"
     path.write_text("shape: torus\npoints: [1, 2\nviews: 3\n")
     with pytest.raises(MpeError, match=r"malformed YAML at .*bad.yaml:\d+"):
-        load_yaml(path)
+        read_yaml(path)
     with pytest.raises(MpeError, match="cannot read config file"):
-        load_yaml(tmp_path / "missing.yaml")
+        read_yaml(tmp_path / "missing.yaml")
 
 
 @pytest.mark.parametrize("text, message", [

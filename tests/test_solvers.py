@@ -110,3 +110,8 @@ def test_bad_observations_are_rejected():
     short = solvers.Observations(obs.n_points, (solvers.View(view.ids, D[:3, :3]),) + obs.views[1:])
     with pytest.raises(MpeError, match="view 0: distance matrix has shape"):
         solvers.solve("baseline", short)
+    twice = view.ids.copy()
+    twice[1] = twice[0]
+    repeated = solvers.Observations(obs.n_points, (solvers.View(twice, view.distances),) + obs.views[1:])
+    with pytest.raises(MpeError, match="view 0: a point id appears twice"):
+        solvers.solve("sgd", repeated)
