@@ -37,3 +37,10 @@ def test_raytrace_sees_about_half_of_a_sphere(rng):
     points, _ = trimesh.sample.sample_surface(sphere, 2000, seed=rng)
     alpha = visibility.raytrace(sphere, points, np.stack([rotation(0.3, 0.2, 0.1)]))
     assert 0.45 < alpha.mean() < 0.55
+
+
+def test_ray_casting_uses_embree():
+    # embreex is a runtime dependency: without it trimesh silently falls back
+    # to a pure-Python intersector that is orders of magnitude slower.
+    box = trimesh.creation.box()
+    assert type(box.ray).__module__.endswith("ray_pyembree")
