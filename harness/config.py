@@ -7,7 +7,6 @@ nested dict and hashed canonically (the hash is the cache key of later sweeps).
 
 from __future__ import annotations
 
-import difflib
 import hashlib
 import json
 from dataclasses import dataclass, field
@@ -16,7 +15,7 @@ from typing import Any, Mapping
 
 import yaml
 
-from .errors import MpeError
+from .errors import MpeError, coerce, suggest
 
 SCHEMA_VERSION = 1
 
@@ -117,12 +116,6 @@ class RunConfig:
         return make_config(overrides, base=base)
 
 
-def suggest(name: str, candidates) -> str:
-    """`` (did you mean 'x'?)`` for the closest candidate, or an empty string."""
-    match = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.5)
-    return f" (did you mean '{match[0]}'?)" if match else ""
-
-
 def flatten(mapping: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     """Nested dicts to dotted keys; ``{"solver": "sgd"}`` stays a leaf."""
     out: dict[str, Any] = {}
@@ -166,8 +159,13 @@ def read_yaml(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
     except OSError as exc:
         raise MpeError(f"cannot read config file {path}: {exc.strerror or exc}") from None
     try:
-        data = yaml.safe_load(text)
-        lines = _key_lines(yaml.compose(text))
+        loader = yaml.SafeLoader(text)  # one parse gives both the values and their lines
+        try:
+            node = loader.get_single_node()
+            data = loader.construct_document(node) if node is not None else None
+        finally:
+            loader.dispose()
+        lines = _key_lines(node)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
@@ -200,18 +198,11 @@ def config_from_file(path: str | Path, overrides: Mapping[str, Any] | None = Non
 def _coerce(key: str, value: Any, spec: Key) -> Any:
     if value is None and spec.optional:
         return None
-    kind = spec.kind
-    if kind is int and isinstance(value, int) and not isinstance(value, bool):
-        return int(value)
-    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    if kind is str and isinstance(value, str):
-        if spec.choices and value not in spec.choices:
-            raise MpeError(f"{key}: '{value}' is not one of {', '.join(spec.choices)}"
-                           f"{suggest(value, spec.choices)}", key=key)
-        return value
-    wanted = {int: "an integer", float: "a number", str: "a string"}[kind]
-    raise MpeError(f"{key}: expected {wanted}, got {value!r}", key=key)
+    value = coerce(key, value, spec.kind)
+    if spec.choices and value not in spec.choices:
+        raise MpeError(f"{key}: '{value}' is not one of {', '.join(spec.choices)}"
+                       f"{suggest(value, spec.choices)}", key=key)
+    return value
 
 
 def _check_ranges(v: dict[str, Any]) -> None:

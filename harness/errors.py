@@ -1,6 +1,10 @@
-"""The one exception type the project raises for bad input."""
+"""The one exception type the project raises for bad input, and the checks
+that phrase its messages (shared by run keys and solver options)."""
 
 from __future__ import annotations
+
+import difflib
+from typing import Any
 
 
 class MpeError(Exception):
@@ -15,3 +19,28 @@ class MpeError(Exception):
     def __init__(self, message: str, key: str | None = None):
         super().__init__(message)
         self.key = key
+
+
+def suggest(name: str, candidates) -> str:
+    """`` (did you mean 'x'?)`` for the closest candidate, or an empty string."""
+    match = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.5)
+    return f" (did you mean '{match[0]}'?)" if match else ""
+
+
+_WANTED = {bool: "true or false", int: "an integer", float: "a number", str: "a string"}
+
+
+def coerce(key: str, value: Any, kind: type) -> Any:
+    """``value`` as ``kind`` (ints are accepted as floats, bools never as numbers)."""
+    is_number = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if kind is bool and isinstance(value, bool):
+        return value
+    if kind is int and is_number and isinstance(value, int):
+        return int(value)
+    if kind is float and is_number:
+        return float(value)
+    if kind is str and isinstance(value, str):
+        return value
+    if kind not in _WANTED:  # an option without a typed default takes anything
+        return value
+    raise MpeError(f"{key}: expected {_WANTED[kind]}, got {value!r}", key=key)

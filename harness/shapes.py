@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .errors import MpeError
+from .errors import MpeError, suggest
 
 PROCEDURAL = ("torus", "box", "sphere", "cone")
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
@@ -86,7 +86,6 @@ def load_shape(spec: str) -> trimesh.Trimesh:
     elif Path(spec).suffix.lower() in MESH_SUFFIXES or os.sep in spec:
         mesh = _read_mesh(Path(spec).expanduser(), spec)
     else:
-        from .config import suggest
         raise MpeError(f"shape: unknown shape '{spec}'{suggest(spec, shape_names())}; "
                        f"use one of {', '.join(shape_names())} or a mesh file path")
     return normalise(mesh)

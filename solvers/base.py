@@ -5,7 +5,8 @@ Every solver is a function ``solve(observations, *, init, random_state,
 Options are plain keyword arguments with defaults; :func:`validate_options`
 checks ``solver.<option>`` keys against that signature, in one place.
 
-Solvers import nothing from :mod:`harness`: what they may see is exactly an
+Solvers import nothing from :mod:`harness` but :mod:`harness.errors` (the
+error type and its message helpers): what they may see is exactly an
 :class:`Observations`, which holds no ground truth.
 """
 
@@ -19,7 +20,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from harness.errors import MpeError
+from harness.errors import MpeError, coerce, suggest
 
 _RESERVED = ("observations", "init", "random_state")
 
@@ -89,14 +90,9 @@ def register(name: str):
     return decorator
 
 
-def _suggest(name: str, candidates) -> str:
-    from harness.config import suggest
-    return suggest(name, candidates)
-
-
 def get_solver(name: str) -> Callable[..., Reconstruction]:
     if name not in SOLVERS:
-        raise MpeError(f"unknown solver '{name}'{_suggest(name, SOLVERS)}; "
+        raise MpeError(f"unknown solver '{name}'{suggest(name, SOLVERS)}; "
                        f"known: {', '.join(sorted(SOLVERS))}", key="solver.name")
     return SOLVERS[name]
 
@@ -108,35 +104,22 @@ def solver_options(name: str) -> dict[str, Any]:
             if p.name not in _RESERVED and p.default is not inspect.Parameter.empty}
 
 
-def _coerce_option(solver: str, key: str, value: Any, default: Any) -> Any:
-    kind = type(default)
-    ok = (value is None and default is None) or default is None
-    if kind is bool:
-        ok = isinstance(value, bool)
-    elif kind is int:
-        ok = isinstance(value, int) and not isinstance(value, bool)
-    elif kind is float:
-        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
-        value = float(value) if ok else value
-    elif kind is str:
-        ok = isinstance(value, str)
-    if not ok:
-        raise MpeError(f"solver.{key}: expected {kind.__name__} for solver '{solver}', got {value!r}",
-                       key=f"solver.{key}")
-    return value
-
-
 def validate_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
     """Fill in defaults and check every ``solver.<option>`` of solver ``name``."""
     known = solver_options(name)
     out = dict(known)
     for key, value in options.items():
         if key not in known:
-            hint = _suggest(key, known)
+            hint = suggest(key, known)
             listed = ", ".join(sorted(known)) or "none"
             raise MpeError(f"unknown option 'solver.{key}' for solver '{name}'{hint}; options: {listed}",
                            key=f"solver.{key}")
-        out[key] = _coerce_option(name, key, value, known[key])
+        default = known[key]
+        try:
+            out[key] = value if default is None else coerce(f"solver.{key}", value, type(default))
+        except MpeError:  # name the solver: the same option may differ between solvers
+            raise MpeError(f"solver.{key}: expected {type(default).__name__} for solver '{name}', "
+                           f"got {value!r}", key=f"solver.{key}") from None
     return out
 
 
