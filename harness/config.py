@@ -191,7 +191,7 @@ def config_from_file(path: str | Path, overrides: Mapping[str, Any] | None = Non
         spelled = {name: alias for alias, name in ALIASES.items()}  # "solver.name" may be "solver:"
         line = lines.get(exc.key) or lines.get(spelled.get(exc.key))
         where = f"{path}:{line}" if line else str(path)
-        raise MpeError(f"{exc} at {where}", key=exc.key) from None
+        raise exc.located(where) from None
     return make_config({**values, **(overrides or {})})
 
 
@@ -200,8 +200,8 @@ def _coerce(key: str, value: Any, spec: Key) -> Any:
         return None
     value = coerce(key, value, spec.kind)
     if spec.choices and value not in spec.choices:
-        raise MpeError(f"{key}: '{value}' is not one of {', '.join(spec.choices)}"
-                       f"{suggest(value, spec.choices)}", key=key)
+        raise MpeError(f"{key}: '{value}' is not one of {', '.join(spec.choices)}",
+                       key=key, hint=suggest(value, spec.choices))
     return value
 
 
@@ -244,7 +244,7 @@ def make_config(overrides: Mapping[str, Any] | None = None,
         elif key.startswith("solver."):
             options[key[len("solver."):]] = value
         else:
-            raise MpeError(f"unknown key '{key}'{suggest(key, list(KEYS) + list(ALIASES))}", key=key)
+            raise MpeError(f"unknown key '{key}'", key=key, hint=suggest(key, list(KEYS) + list(ALIASES)))
     _check_ranges(values)
     options = validate_options(values["solver.name"], options)
     return RunConfig(values=values, solver_options=options)

@@ -11,14 +11,19 @@ class MpeError(Exception):
     """A user-facing error: its message is one line that names the culprit.
 
     ``key`` is the configuration key at fault, when there is one, so that a
-    caller who read the key from a file can say where it stands.
-    The CLI prints the message to stderr and exits with code 2, without a
-    traceback.
+    caller who read the key from a file can say where it stands; ``hint`` is a
+    trailing suggestion such as `` (did you mean 'views'?)``, kept apart so the
+    location goes before it. The CLI prints the message to stderr and exits
+    with code 2, without a traceback.
     """
 
-    def __init__(self, message: str, key: str | None = None):
-        super().__init__(message)
-        self.key = key
+    def __init__(self, message: str, key: str | None = None, hint: str = ""):
+        super().__init__(message + hint)
+        self.message, self.key, self.hint = message, key, hint
+
+    def located(self, where: str) -> "MpeError":
+        """The same error, saying where it stands: ``... at file.yaml:7 (did you mean ...)``."""
+        return MpeError(f"{self.message} at {where}", key=self.key, hint=self.hint)
 
 
 def suggest(name: str, candidates) -> str:

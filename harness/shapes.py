@@ -53,11 +53,11 @@ def _dataset_path(spec: str) -> Path:
     env = {"shapenet": "SHAPENET_DIR", "pix3d": "PIX3D_DIR"}[kind]
     root = os.environ.get(env)
     if not root:
-        raise MpeError(f"shape '{spec}': set ${env} to the {kind} dataset root")
+        raise MpeError(f"shape '{spec}': set ${env} to the {kind} dataset root", key="shape")
     parts = rest.strip("/").split("/")
     if len(parts) != 2 or not all(parts):
         form = "shapenet:<synset>/<model_id>" if kind == "shapenet" else "pix3d:<category>/<model>"
-        raise MpeError(f"shape '{spec}': expected {form}")
+        raise MpeError(f"shape '{spec}': expected {form}", key="shape")
     if kind == "shapenet":  # ShapeNetCore.v2 layout
         return Path(root) / parts[0] / parts[1] / "models" / "model_normalized.obj"
     return Path(root) / "model" / parts[0] / parts[1] / "model.obj"  # Pix3D layout
@@ -75,19 +75,31 @@ def _read_mesh(path: Path, label: str) -> trimesh.Trimesh:
     return mesh
 
 
+def _mesh_path(spec: str) -> Path | None:
+    """Where the mesh for ``spec`` lives (``None`` for procedural solids)."""
+    if spec in PROCEDURAL:
+        return None
+    if spec in bundled_manifest():
+        return _assets() / f"{spec}.ply"
+    if spec.startswith(("shapenet:", "pix3d:")):
+        return _dataset_path(spec)
+    if Path(spec).suffix.lower() in MESH_SUFFIXES or os.sep in spec:
+        return Path(spec).expanduser()
+    raise MpeError(f"shape: unknown shape '{spec}' (use one of {', '.join(shape_names())} "
+                   "or a mesh file path)", key="shape", hint=suggest(spec, shape_names()))
+
+
+def check_shape(spec: str) -> None:
+    """Fail early, without loading anything, if ``spec`` names no shape or no file."""
+    path = _mesh_path(spec)
+    if path is not None and not path.is_file():
+        raise MpeError(f"shape '{spec}': no mesh file at {path}", key="shape")
+
+
 def load_shape(spec: str) -> trimesh.Trimesh:
     """The normalised mesh for a ``shape`` value (see module doc)."""
-    if spec in PROCEDURAL:
-        mesh = _procedural(spec)
-    elif spec in bundled_manifest():
-        mesh = _read_mesh(_assets() / f"{spec}.ply", spec)
-    elif spec.startswith(("shapenet:", "pix3d:")):
-        mesh = _read_mesh(_dataset_path(spec), spec)
-    elif Path(spec).suffix.lower() in MESH_SUFFIXES or os.sep in spec:
-        mesh = _read_mesh(Path(spec).expanduser(), spec)
-    else:
-        raise MpeError(f"shape: unknown shape '{spec}'{suggest(spec, shape_names())}; "
-                       f"use one of {', '.join(shape_names())} or a mesh file path")
+    path = _mesh_path(spec)
+    mesh = _procedural(spec) if path is None else _read_mesh(path, spec)
     return normalise(mesh)
 
 

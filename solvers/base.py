@@ -92,8 +92,8 @@ def register(name: str):
 
 def get_solver(name: str) -> Callable[..., Reconstruction]:
     if name not in SOLVERS:
-        raise MpeError(f"unknown solver '{name}'{suggest(name, SOLVERS)}; "
-                       f"known: {', '.join(sorted(SOLVERS))}", key="solver.name")
+        raise MpeError(f"unknown solver '{name}' (known: {', '.join(sorted(SOLVERS))})",
+                       key="solver.name", hint=suggest(name, SOLVERS))
     return SOLVERS[name]
 
 
@@ -110,10 +110,9 @@ def validate_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
     out = dict(known)
     for key, value in options.items():
         if key not in known:
-            hint = suggest(key, known)
             listed = ", ".join(sorted(known)) or "none"
-            raise MpeError(f"unknown option 'solver.{key}' for solver '{name}'{hint}; options: {listed}",
-                           key=f"solver.{key}")
+            raise MpeError(f"unknown option 'solver.{key}' for solver '{name}' (options: {listed})",
+                           key=f"solver.{key}", hint=suggest(key, known))
         default = known[key]
         try:
             out[key] = value if default is None else coerce(f"solver.{key}", value, type(default))
