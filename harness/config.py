@@ -141,23 +141,34 @@ def parse_override(text: str) -> tuple[str, Any]:
 
 
 def _key_lines(node, prefix: str = "", out: dict[str, int] | None = None) -> dict[str, int]:
-    """Dotted key -> the 1-based line where it stands in a composed YAML mapping."""
+    """Dotted path -> the 1-based line where it stands in a composed YAML node.
+
+    Mapping keys give ``a.b``; list items give ``a.b[2]`` (so an error can
+    point at the one bad value of a list written over several lines).
+    """
     out = {} if out is None else out
     if isinstance(node, yaml.MappingNode):
         for key_node, value_node in node.value:
             dotted = f"{prefix}{key_node.value}"
             out[dotted] = key_node.start_mark.line + 1
             _key_lines(value_node, dotted + ".", out)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            path = f"{prefix[:-1]}[{i}]"
+            out[path] = item.start_mark.line + 1
+            _key_lines(item, path + ".", out)
     return out
 
 
-def read_yaml(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
-    """A YAML mapping (nested or dotted keys) as a flat dict, and each key's line."""
+def load_yaml(path: str | Path, what: str = "config file") -> tuple[Any, dict[str, int]]:
+    """Parse one YAML document: its data, and the line of every key and list item."""
     path = Path(path)
     try:
         text = path.read_text()
+    except UnicodeDecodeError:
+        raise MpeError(f"{what} {path} is not a text file") from None
     except OSError as exc:
-        raise MpeError(f"cannot read config file {path}: {exc.strerror or exc}") from None
+        raise MpeError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
     try:
         loader = yaml.SafeLoader(text)  # one parse gives both the values and their lines
         try:
@@ -165,12 +176,17 @@ def read_yaml(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
             data = loader.construct_document(node) if node is not None else None
         finally:
             loader.dispose()
-        lines = _key_lines(node)
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
         problem = getattr(exc, "problem", None) or "malformed YAML"
         raise MpeError(f"malformed YAML at {where}: {problem}") from None
+    return data, _key_lines(node)
+
+
+def read_yaml(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
+    """A YAML run config (nested or dotted keys) as a flat dict, and each key's line."""
+    data, lines = load_yaml(path)
     if data is None:
         return {}, {}
     if not isinstance(data, Mapping):
