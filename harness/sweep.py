@@ -1,0 +1,271 @@
+"""Sweeps: a YAML file that expands into a grid of run configurations.
+
+A sweep file has these top-level keys (see ``sweeps/README.md``)::
+
+    name: views-vs-accuracy        # the MLflow experiment (default: the file's stem)
+    description: free text
+    base: {points: 512, solver: {name: sgd, max_iter: 300}}   # keys of `mpe3d run`
+    grid: {views: [2, 3, 4], projections: [fixed, variable]}  # Cartesian product
+    zip: {visibility.k: [1, 2, 3], views: [2, 3, 4]}          # vary together
+    repeats: 3                     # seeds 0..2, or `seeds: [...]`
+
+``zip`` may also be a list of such mappings (each group varies on its own,
+and the groups are crossed with each other and with ``grid``). A list item
+that is a mapping sets several keys at once, e.g.
+``solver: [{name: baseline}, {name: sgd, max_iter: 200}]``.
+
+The whole file is validated before anything runs: every error names
+``file:line``. Each run's :meth:`RunConfig.hash` is its cache key.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+from .config import ALIASES, KEYS, RunConfig, _coerce, flatten, load_yaml, make_config
+from .errors import MpeError, suggest
+from .shapes import check_shape
+
+TOP_LEVEL = ("name", "description", "base", "grid", "zip", "repeats", "seeds")
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """A validated, expanded sweep file."""
+
+    name: str
+    description: str
+    path: Path
+    sha256: str  # of the file's bytes: which exact file made a set of runs
+    runs: tuple[RunConfig, ...]
+    varying: tuple[str, ...]  # the keys whose value differs between runs
+    collapsed: int  # grid points that duplicated an earlier one and were dropped
+
+    def label(self, config: RunConfig) -> str:
+        """``views=4 projections=fixed seed=0``: what sets this run apart."""
+        flat = config.flat()
+        return " ".join(f"{key}={flat.get(key)}" for key in self.varying) or config.hash()
+
+
+# One value an axis can take: resolved key -> (value, where it was written).
+Setting = dict[str, tuple[Any, str]]
+
+
+class _Source:
+    """Turns a dotted YAML path into ``file:line`` for messages."""
+
+    def __init__(self, path: Path, lines: Mapping[str, int]):
+        self.path, self.lines = path, lines
+
+    def where(self, dotted: str | None) -> str:
+        while dotted:  # the path itself, else its nearest written parent
+            if dotted in self.lines:
+                return f"{self.path}:{self.lines[dotted]}"
+            dotted = dotted[:max(dotted.rfind("."), dotted.rfind("["), 0)]
+        return str(self.path)
+
+    def error(self, message: str, dotted: str | None, hint: str = "") -> MpeError:
+        return MpeError(f"{message} at {self.where(dotted)}", hint=hint)
+
+
+def _resolve(key: str) -> str:
+    return ALIASES.get(key, key)
+
+
+def _check_key(key: str, dotted: str, src: _Source) -> str:
+    """The resolved name of a run key written at ``dotted``, or a located error."""
+    resolved = _resolve(key)
+    if resolved not in KEYS and not resolved.startswith("solver."):
+        raise src.error(f"unknown key '{key}'", dotted, suggest(key, list(KEYS) + list(ALIASES)))
+    return resolved
+
+
+def _setting(prefix: str, value: Any, dotted: str, src: _Source) -> Setting:
+    """A list item as resolved keys; a mapping item sets several keys at once."""
+    raw = flatten({prefix: value}) if isinstance(value, Mapping) else {prefix: value}
+    out: Setting = {}
+    for key, item in raw.items():
+        at = dotted + key[len(prefix):]
+        resolved = _check_key(key, at, src)
+        if resolved in KEYS:  # types and choices now, with the item's own line
+            try:
+                item = _coerce(resolved, item, KEYS[resolved])
+            except MpeError as exc:
+                raise exc.located(src.where(at)) from None
+        out[resolved] = (item, at)
+    return out
+
+
+def _axis_lists(section: Any, name: str, src: _Source) -> dict[str, tuple[list, str]]:
+    """``{key: [values]}`` of a grid or zip group, nested or dotted, checked to be lists."""
+    if not isinstance(section, Mapping):
+        raise src.error(f"{name}: expected a mapping of keys to lists of values", name)
+    out: dict[str, tuple[list, str]] = {}
+
+    def walk(node: Mapping, prefix: str) -> None:
+        for key, value in node.items():
+            key = f"{prefix}{key}"
+            dotted = f"{name}.{key}"
+            if isinstance(value, Mapping):  # nested keys, as in base
+                walk(value, key + ".")
+                continue
+            if not isinstance(value, list):
+                raise src.error(f"{dotted}: expected a list of values, got {value!r} "
+                                "(put a single value under base)", dotted)
+            if not value:
+                raise src.error(f"{dotted}: empty list", dotted)
+            out[key] = (value, dotted)
+
+    walk(section, "")
+    if not out:
+        raise src.error(f"{name}: no keys to vary", name)
+    return out
+
+
+def _grid_axes(section: Any, src: _Source) -> list[list[Setting]]:
+    if section is None:
+        return []
+    return [[_setting(key, v, f"{dotted}[{i}]", src) for i, v in enumerate(values)]
+            for key, (values, dotted) in _axis_lists(section, "grid", src).items()]
+
+
+def _zip_group(section: Any, name: str, src: _Source) -> list[Setting]:
+    lists = _axis_lists(section, name, src)
+    lengths = {key: len(values) for key, (values, _) in lists.items()}
+    if len(set(lengths.values())) > 1:
+        shown = ", ".join(f"{key} has {n}" for key, n in lengths.items())
+        raise src.error(f"{name}: lists differ in length ({shown})", name)
+    settings = [{} for _ in range(next(iter(lengths.values())))]
+    for key, (values, dotted) in lists.items():
+        for i, value in enumerate(values):
+            settings[i].update(_setting(key, value, f"{dotted}[{i}]", src))
+    return settings
+
+
+def _zip_axes(section: Any, src: _Source) -> list[list[Setting]]:
+    if section is None:
+        return []
+    if isinstance(section, list):
+        if not section:
+            raise src.error("zip: empty list", "zip")
+        return [_zip_group(group, f"zip[{i}]", src) for i, group in enumerate(section)]
+    return [_zip_group(section, "zip", src)]
+
+
+def _seed_axis(data: Mapping, src: _Source) -> list[Setting]:
+    if "repeats" in data and "seeds" in data:
+        raise src.error("give either repeats or seeds, not both", "seeds")
+    if "repeats" in data:
+        n = data["repeats"]
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise src.error(f"repeats: expected a positive integer, got {n!r}", "repeats")
+        return [{"seed": (s, "repeats")} for s in range(n)]
+    if "seeds" in data:
+        seeds = data["seeds"]
+        if not isinstance(seeds, list) or not seeds:
+            raise src.error(f"seeds: expected a non-empty list of integers, got {seeds!r}", "seeds")
+        for i, s in enumerate(seeds):
+            if isinstance(s, bool) or not isinstance(s, int) or s < 0:
+                raise src.error(f"seeds: expected integers >= 0, got {s!r}", f"seeds[{i}]")
+        if len(set(seeds)) != len(seeds):
+            raise src.error("seeds: a seed is listed twice", "seeds")
+        return [{"seed": (s, f"seeds[{i}]")} for i, s in enumerate(seeds)]
+    return []
+
+
+def _base(data: Mapping, src: _Source) -> Setting:
+    section = data.get("base")
+    if section is None:
+        return {}
+    if not isinstance(section, Mapping):
+        raise src.error("base: expected a mapping of run keys", "base")
+    out: Setting = {}
+    for key, value in flatten(section).items():
+        resolved = _check_key(key, f"base.{key}", src)
+        out[resolved] = (value, f"base.{key}")
+    return out
+
+
+def _check_axes_disjoint(base: Setting, axes: list[list[Setting]], seeded: bool,
+                         src: _Source) -> None:
+    owner: dict[str, int] = {}
+    for index, axis in enumerate(axes):
+        for key, (_, where) in {k: v for setting in axis for k, v in setting.items()}.items():
+            if owner.setdefault(key, index) != index:
+                raise src.error(f"key '{key}' varies in two places (grid and zip, or two zip "
+                                "groups); vary it in one", where)
+    if seeded:
+        written = [*base.items(), *((k, v) for axis in axes for s in axis for k, v in s.items())]
+        for key, (_, where) in written:
+            if key == "seed":
+                raise src.error("seed is set by repeats/seeds; do not set it here too", where)
+
+
+def _check_shapes(base: Setting, axes: list[list[Setting]], src: _Source) -> None:
+    values = [base["shape"]] if "shape" in base else []
+    values += [s["shape"] for axis in axes for s in axis if "shape" in s]
+    for value, where in values:
+        try:
+            check_shape(value)
+        except MpeError as exc:
+            raise exc.located(src.where(where)) from None
+
+
+def _expand(base: Setting, axes: list[list[Setting]], src: _Source) -> list[RunConfig]:
+    base_values = {key: value for key, (value, _) in base.items()}
+    runs = []
+    for combination in itertools.product(*axes):
+        setting: Setting = dict(base)
+        for part in combination:
+            setting.update(part)
+        overrides = {key: value for key, (value, _) in setting.items()}
+        try:
+            runs.append(make_config(overrides, base=base_values))
+        except MpeError as exc:
+            varied = ", ".join(f"{k}={overrides[k]}" for p in combination for k in p)
+            context = f" (in the run with {varied})" if varied else ""
+            where = src.where(setting.get(exc.key, (None, None))[1])
+            raise MpeError(f"{exc.message} at {where}{context}", key=exc.key, hint=exc.hint) from None
+    return runs
+
+
+def load_sweep(path: str | Path) -> Sweep:
+    """Read, validate and expand a sweep file; every error names ``file:line``."""
+    path = Path(path)
+    data, lines = load_yaml(path, "sweep file")
+    src = _Source(path, lines)
+    if not isinstance(data, Mapping):
+        raise MpeError(f"{path}: a sweep must be a mapping with keys {', '.join(TOP_LEVEL)}")
+    for key in data:
+        if key not in TOP_LEVEL:
+            raise src.error(f"unknown key '{key}'", str(key), suggest(str(key), TOP_LEVEL))
+    name = data.get("name", path.stem)
+    if not isinstance(name, str) or not name.strip():
+        raise src.error(f"name: expected a non-empty string, got {name!r}", "name")
+    description = data.get("description") or ""
+    if not isinstance(description, str):
+        raise src.error("description: expected text", "description")
+    base = _base(data, src)
+    seeds = _seed_axis(data, src)
+    axes = _grid_axes(data.get("grid"), src) + _zip_axes(data.get("zip"), src)
+    _check_axes_disjoint(base, axes, bool(seeds), src)
+    _check_shapes(base, axes, src)
+    runs = _expand(base, axes + ([seeds] if seeds else []), src)
+    unique: dict[str, RunConfig] = {}
+    for config in runs:  # the first of identical grid points wins
+        unique.setdefault(config.hash(), config)
+    unique = list(unique.values())
+    return Sweep(name=name.strip(), description=description.strip(), path=path,
+                 sha256=hashlib.sha256(path.read_bytes()).hexdigest(), runs=tuple(unique),
+                 varying=varying_keys(unique), collapsed=len(runs) - len(unique))
+
+
+def varying_keys(configs: Iterable[RunConfig]) -> tuple[str, ...]:
+    """The dotted keys whose values differ between ``configs``, in key order."""
+    flats = [c.flat() for c in configs]
+    keys = dict.fromkeys(k for flat in flats for k in flat)
+    return tuple(k for k in keys if len({repr(flat.get(k)) for flat in flats}) > 1)
