@@ -1,3 +1,8 @@
-"""mpe3d's experiment harness: scenes, configs, metrics and the command line."""
+"""mpe3d's experiment harness: scenes, configs, sweeps, tracking and the command line."""
 
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError, version
+
+try:  # one source of truth: pyproject.toml
+    __version__ = version("mpe3d")
+except PackageNotFoundError:  # running from a checkout that was never installed
+    __version__ = "0+unknown"

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import os
+import socket
 import time
-from dataclasses import dataclass
+import traceback
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -13,6 +16,7 @@ import solvers
 
 from . import metrics as metrics_mod
 from .config import RunConfig
+from .errors import MpeError
 from .observe import Scene, build_scene, observe, seed_streams
 
 METRIC_KEYS = ("cd", "cd_mean", "emd", "emd_mean", "roa", "stress", "iterations", "runtime_s")
@@ -55,6 +59,49 @@ def run(config: RunConfig) -> RunResult:
                   runtime_s=float(recon.runtime_s))
     return RunResult(config=config, metrics=scores, scene=scene, reconstruction=recon,
                      aligned=aligned, facts=facts, wall_s=time.perf_counter() - start)
+
+
+@dataclass
+class RunRecord:
+    """What a sweep worker sends back to the parent: small, picklable, no mesh.
+
+    A run that raised is a record too (``status="FAILED"``, with the error),
+    so one bad grid point never stops a sweep.
+    """
+
+    config: RunConfig
+    status: str  # FINISHED or FAILED, as MLflow names them
+    start_ms: int
+    end_ms: int
+    metrics: dict[str, float] = field(default_factory=dict)
+    stress_history: np.ndarray | None = None
+    facts: dict[str, str] = field(default_factory=dict)
+    truth: np.ndarray | None = None  # ground truth, for the artifacts
+    reconstruction: np.ndarray | None = None  # aligned to the truth
+    error: str = ""
+    traceback: str = ""
+
+
+def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
+    """Run ``config`` in a worker and return what the parent will log."""
+    start = time.time()
+    worker = {"worker": f"{socket.gethostname()}:{os.getpid()}"}
+    try:
+        result = run(config)
+    except Exception as exc:  # noqa: BLE001 - any failure is this run's result, not the sweep's
+        message = str(exc) if isinstance(exc, MpeError) else f"{type(exc).__name__}: {exc}"
+        return RunRecord(config=config, status="FAILED", start_ms=int(start * 1000),
+                         end_ms=int(time.time() * 1000), facts=worker,
+                         error=message or type(exc).__name__, traceback=traceback.format_exc())
+    recon = result.reconstruction
+    facts = {**worker, "termination": recon.termination,
+             "visible_per_view": ",".join(map(str, result.scene.visible_per_view))}
+    return RunRecord(config=config, status="FINISHED", start_ms=int(start * 1000),
+                     end_ms=int(time.time() * 1000),
+                     metrics={**result.metrics, "wall_s": result.wall_s},
+                     stress_history=np.asarray(recon.stress_history, dtype=float), facts=facts,
+                     truth=result.scene.points if keep_clouds else None,
+                     reconstruction=result.aligned if keep_clouds else None)
 
 
 def write_outputs(result: RunResult, out: Path) -> list[Path]:
