@@ -6,10 +6,12 @@ import argparse
 import json
 import logging
 import sys
+import time
 from pathlib import Path
 
 from .config import config_from_file, describe_keys, make_config, parse_override
 from .errors import MpeError
+from .runner import BACKENDS
 
 
 class _Parser(argparse.ArgumentParser):
@@ -78,6 +80,133 @@ def cmd_solvers(args) -> int:
     return 0
 
 
+def _say(text: str = "", quiet: bool = False) -> None:
+    if not quiet:
+        print(text, flush=True)
+
+
+def _dry_run(sweeps) -> int:
+    import pandas as pd
+
+    for sweep in sweeps:
+        dropped = f", {sweep.collapsed} duplicate grid points dropped" if sweep.collapsed else ""
+        print(f"{sweep.name} ({sweep.path}): {len(sweep.runs)} runs{dropped}")
+        table = pd.DataFrame([{"hash": c.hash(), **{k: c.flat()[k] for k in sweep.varying}}
+                              for c in sweep.runs])
+        print(table.to_string(index=False))
+    print(f"{sum(len(s.runs) for s in sweeps)} runs in all")
+    return 0
+
+
+def _nothing_to_do(plan, uri: str) -> str:
+    parts = [f"{plan.skipped_finished} finished"]
+    if plan.skipped_failed:
+        parts.append(f"{plan.skipped_failed} failed (--rerun-failed retries them)")
+    return (f"{plan.sweep.name}: nothing to run: all {len(plan.sweep.runs)} runs are already "
+            f"tracked in {uri} ({', '.join(parts)}; --force reruns everything)")
+
+
+def cmd_sweep(args) -> int:
+    from .sweep import load_sweep
+
+    sweeps = [load_sweep(path) for path in args.files]  # every file is valid before any run
+    backend = args.backend or ("dask" if args.scheduler else "loky")
+    if args.scheduler and backend != "dask":
+        raise MpeError("--scheduler needs --backend dask")
+    if args.jobs == 0 or args.jobs < -1:
+        raise MpeError(f"--jobs: expected a positive count or -1 (all cores), got {args.jobs}")
+    if args.dry_run:
+        return _dry_run(sweeps)
+    from .runner import plan_sweeps, run_plans
+    from .tracking import Tracker
+
+    tracker = Tracker(args.tracking_uri)
+    plans = plan_sweeps(sweeps, tracker, rerun_failed=args.rerun_failed, force=args.force)
+    for plan in plans:
+        if not plan.todo:
+            _say(_nothing_to_do(plan, tracker.uri), args.quiet)
+    if not any(plan.todo for plan in plans):
+        return 0
+    reporter = None
+    if not args.quiet:
+        from .progress import RichReporter
+        reporter = RichReporter()
+    start = time.time()
+    try:
+        outcomes = run_plans(plans, tracker, jobs=args.jobs, backend=backend,
+                             scheduler=args.scheduler, artifacts=not args.no_artifacts,
+                             reporter=reporter)
+    except KeyboardInterrupt:
+        print("mpe3d: interrupted; every run logged so far is kept: run the same command "
+              "to resume", file=sys.stderr)
+        return 130
+    for plan, outcome in zip(plans, outcomes):
+        if plan.todo:
+            _say(f"{outcome.name}: {outcome.finished} finished, {outcome.failed} failed, "
+                 f"{plan.skipped} skipped (already tracked) of {outcome.total} runs", args.quiet)
+        for label, error in plan.failures[:5]:
+            print(f"mpe3d: run failed: {label}: {error}", file=sys.stderr)
+        if len(plan.failures) > 5:
+            print(f"mpe3d: ... and {len(plan.failures) - 5} more failed runs "
+                  f"(`mpe3d runs '{outcome.name}'` lists them)", file=sys.stderr)
+    _say(f"{time.time() - start:.1f} s; tracked in {tracker.uri} "
+         f"(`mpe3d runs NAME` prints a table, `mpe3d ui` opens the MLflow UI)", args.quiet)
+    return 1 if any(o.failed for o in outcomes) else 0
+
+
+def _runs_table(frame, all_params: bool):
+    from .config import KEYS
+    from .execute import METRIC_KEYS
+
+    params = [c for c in frame.columns if c in KEYS or c.startswith("solver.")]
+    shown = params if all_params else [c for c in params if frame[c].nunique(dropna=False) > 1]
+    metrics = [c for c in (*METRIC_KEYS, "wall_s") if c in frame.columns]
+    table = frame.sort_values(shown + ["start_time"]) if shown else frame.sort_values("start_time")
+    columns = ["status", *shown, *metrics, "config_hash"]
+    if (table["status"] != "FINISHED").any():
+        columns.append("error")
+    return table[columns]
+
+
+def cmd_runs(args) -> int:
+    from .tracking import Tracker
+
+    frame = Tracker(args.tracking_uri, create=False).runs_frame(args.experiment, history=args.history)
+    if frame.empty:
+        print(f"mpe3d: experiment '{args.experiment}' has no runs yet", file=sys.stderr)
+        return 0
+    table = _runs_table(frame, args.all)
+    if args.format == "csv":
+        print(table.to_csv(index=False), end="")
+    else:
+        print(table.to_markdown(index=False, floatfmt=".4g"))
+    return 0
+
+
+def cmd_ui(args) -> int:
+    import socket
+    import subprocess
+
+    from .tracking import artifact_root, resolve_uri
+
+    uri = resolve_uri(args.tracking_uri)
+    if uri.startswith(("http://", "https://")):
+        raise MpeError(f"{uri} is a tracking server: open it in a browser, it serves its own UI")
+    with socket.socket() as probe:
+        if probe.connect_ex(("127.0.0.1", args.port)) == 0:
+            raise MpeError(f"--port: 127.0.0.1:{args.port} is in use; choose another port")
+    command = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri,
+               "--host", "127.0.0.1", "--port", str(args.port), "--workers", "1"]  # one user
+    root = artifact_root(uri)
+    if root:
+        command += ["--artifacts-destination", root]
+    print(f"MLflow UI on {uri} at http://127.0.0.1:{args.port} (Ctrl-C stops it)", flush=True)
+    try:
+        return subprocess.run(command).returncode
+    except KeyboardInterrupt:
+        return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mpe3d", description="3D multi-perspective embedding: "
                      "rebuild a 3D point cloud from partial 2D views.")
@@ -91,13 +220,48 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     run.add_argument("--out", metavar="DIR", help="write ground_truth.ply, reconstruction.ply and a PNG")
     run.set_defaults(func=cmd_run)
+    sweep = sub.add_parser("sweep", help="run YAML sweeps, tracked in MLflow, resuming what is done",
+                           description="Expand each sweep file into a grid of runs, skip the runs "
+                           "already FINISHED in its MLflow experiment, and run the rest in parallel. "
+                           "Exit code 1 if a run failed, 2 on bad input.")
+    sweep.add_argument("files", nargs="+", metavar="FILE.yaml")
+    sweep.add_argument("--jobs", type=int, default=-1, metavar="N",
+                       help="parallel runs (default -1: one per core; dask: local workers)")
+    sweep.add_argument("--backend", choices=BACKENDS, default=None,
+                       help="loky (one machine, default) or dask (a cluster)")
+    sweep.add_argument("--scheduler", metavar="ADDRESS",
+                       help="dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local cluster)")
+    sweep.add_argument("--tracking-uri", metavar="URI",
+                       help="MLflow store (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
+    sweep.add_argument("--rerun-failed", action="store_true", help="retry runs that FAILED before")
+    sweep.add_argument("--force", action="store_true", help="rerun every run, even FINISHED ones")
+    sweep.add_argument("--no-artifacts", action="store_true",
+                       help="do not store reconstruction.ply and ground_truth.ply")
+    sweep.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+    sweep.add_argument("--dry-run", action="store_true", help="list the expanded runs and stop")
+    sweep.set_defaults(func=cmd_sweep)
+    runs = sub.add_parser("runs", help="print the runs of an experiment as a table")
+    runs.add_argument("experiment", metavar="EXPERIMENT")
+    runs.add_argument("--format", choices=("md", "csv"), default="md")
+    runs.add_argument("--all", action="store_true", help="show every param, not only those that vary")
+    runs.add_argument("--history", action="store_true",
+                      help="every run ever made, not only the latest of each config")
+    runs.add_argument("--tracking-uri", metavar="URI")
+    runs.set_defaults(func=cmd_runs)
+    ui = sub.add_parser("ui", help="start the MLflow UI on the tracking store, on 127.0.0.1")
+    ui.add_argument("--tracking-uri", metavar="URI")
+    ui.add_argument("--port", type=int, default=5000)
+    ui.set_defaults(func=cmd_ui)
     sub.add_parser("shapes", help="list the bundled and procedural shapes").set_defaults(func=cmd_shapes)
     sub.add_parser("solvers", help="list solvers and their options").set_defaults(func=cmd_solvers)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    logging.basicConfig(level=logging.WARNING, format="mpe3d: %(message)s", stream=sys.stderr)
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setLevel(logging.WARNING)  # libraries (dask) send INFO records up to the root
+    handler.setFormatter(logging.Formatter("mpe3d: %(message)s"))
+    logging.basicConfig(level=logging.WARNING, handlers=[handler])
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)

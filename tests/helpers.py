@@ -28,8 +28,9 @@ def mpe3d_command() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "harness.cli"]
 
 
-def run_cli(*args, cwd=None):
+def run_cli(*args, cwd=None, env=None):
     """Run ``mpe3d`` in a subprocess and capture what a user would see."""
-    env = dict(os.environ, PYTHONWARNINGS="ignore")
+    inherited = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    env = {**inherited, "PYTHONWARNINGS": "ignore", **(env or {})}  # tests pick their store
     return subprocess.run([*mpe3d_command(), *args], capture_output=True,
                           text=True, cwd=cwd, env=env, timeout=300)

@@ -1,0 +1,275 @@
+"""Sweeps end to end: real joblib workers, a real SQLite MLflow store, a real
+``mlflow server`` and a real dask cluster on 127.0.0.1."""
+import io
+import os
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+import urllib.request
+
+import pandas as pd
+import pytest
+from mlflow.tracking import MlflowClient
+
+from harness.cli import main
+from harness.execute import METRIC_KEYS
+from harness.sweep import load_sweep
+
+from .helpers import run_cli
+
+SWEEP = """
+name: tiny
+description: an 8-run test sweep
+base:
+  shape: torus
+  points: 64
+  visibility: {mode: exact, k: 2}
+  solver: {name: sgd, max_iter: 15}
+grid:
+  projections: [fixed, variable]
+  views: [3, 4]
+repeats: 2
+"""
+
+
+def cli(capsys, *args):
+    """``mpe3d`` in this process (cheaper than a subprocess where that is not the point)."""
+    code = main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def children(client, experiment):
+    exp = client.get_experiment_by_name(experiment)
+    runs = client.search_runs([exp.experiment_id], max_results=1000)
+    kids = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    parents = [r for r in runs if "mlflow.parentRunId" not in r.data.tags]
+    return kids, parents
+
+
+@pytest.fixture(scope="module")
+def tracked(tmp_path_factory):
+    """The 8-run sweep, run once with two workers into a fresh SQLite store."""
+    folder = tmp_path_factory.mktemp("sweep")
+    path = folder / "tiny.yaml"
+    path.write_text(SWEEP)
+    out = run_cli("sweep", str(path), "--jobs", "2", cwd=folder)
+    return folder, path, out
+
+
+def test_sweep_logs_every_run_finished(tracked):
+    folder, path, out = tracked
+    assert out.returncode == 0, out.stderr
+    assert (folder / "mlflow.db").is_file()  # the default store, in the working directory
+    client = MlflowClient(f"sqlite:///{folder}/mlflow.db")
+    kids, parents = children(client, "tiny")
+    assert len(kids) == 8 and {r.info.status for r in kids} == {"FINISHED"}
+    (parent,) = parents
+    assert parent.info.status == "FINISHED"
+    assert parent.data.tags["mpe3d.sweep_file"] == str(path)
+    assert len(parent.data.tags["mpe3d.sweep_sha256"]) == 64
+    assert {"mpe3d.version", "mpe3d.host"} <= set(parent.data.tags)
+    assert parent.data.metrics["runs_finished"] == 8
+    expected = {c.hash(): c for c in load_sweep(path).runs}
+    assert {r.data.tags["mpe3d.config_hash"] for r in kids} == set(expected)
+    for run in kids:
+        config = expected[run.data.tags["mpe3d.config_hash"]]
+        assert run.data.tags["mlflow.parentRunId"] == parent.info.run_id
+        assert run.data.params == {k: str(v) for k, v in config.flat().items()}
+        assert set(METRIC_KEYS) <= set(run.data.metrics)
+        assert 0 <= run.data.metrics["roa"] and run.data.metrics["iterations"] <= 15
+        history = client.get_metric_history(run.info.run_id, "stress_history")
+        assert len(history) == run.data.metrics["iterations"] + 1
+        assert min(m.value for m in history) == pytest.approx(run.data.metrics["stress"])
+        files = {a.path for a in client.list_artifacts(run.info.run_id)}
+        assert files == {"reconstruction.ply", "ground_truth.ply"}
+
+
+def test_rerun_starts_nothing_and_says_so(tracked, capsys):
+    folder, path, _ = tracked
+    code, out, err = cli(capsys, "sweep", path, "--tracking-uri", f"sqlite:///{folder}/mlflow.db")
+    assert code == 0, err
+    assert "nothing to run" in out and "8 finished" in out
+    client = MlflowClient(f"sqlite:///{folder}/mlflow.db")
+    kids, parents = children(client, "tiny")
+    assert len(kids) == 8 and len(parents) == 1
+
+
+def test_runs_table_prints_numbers_from_the_store(tracked, capsys, monkeypatch):
+    folder, _, _ = tracked
+    client = MlflowClient(f"sqlite:///{folder}/mlflow.db")
+    kids, _ = children(client, "tiny")
+    monkeypatch.chdir(folder)  # the default store, ./mlflow.db
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    code, out, err = cli(capsys, "runs", "tiny", "--format", "csv")
+    assert code == 0, err
+    table = pd.read_csv(io.StringIO(out))
+    assert len(table) == 8 and {"views", "projections", "seed", "cd", "roa"} <= set(table.columns)
+    assert "points" not in table.columns  # constant params only with --all
+    by_hash = {r.data.tags["mpe3d.config_hash"]: r.data.metrics for r in kids}
+    for _, row in table.iterrows():
+        assert row["cd"] == pytest.approx(by_hash[row["config_hash"]]["cd"], rel=1e-12)
+    code, out, _ = cli(capsys, "runs", "tiny")
+    assert code == 0 and out.count("| FINISHED") == 8
+    code, _, err = cli(capsys, "runs", "tnyi")
+    assert code == 2 and "no experiment 'tnyi'" in err and "did you mean 'tiny'" in err
+    code, _, err = cli(capsys, "runs", "tiny", "--tracking-uri", f"sqlite:///{folder}/none.db")
+    assert code == 2 and "no tracking store at" in err
+
+
+def test_a_raising_run_is_failed_and_the_others_finish(tmp_path, capsys):
+    (tmp_path / "broken.ply").write_bytes(b"not a mesh")
+    path = tmp_path / "fail.yaml"
+    path.write_text("name: failing\nbase: {points: 64, views: 3, solver: baseline}\n"
+                    f"grid:\n  shape: [torus, {tmp_path / 'broken.ply'}, box]\n")
+    uri = f"sqlite:///{tmp_path}/t.db"
+    out = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri)
+    assert out.returncode == 1  # some run failed; the sweep itself went through
+    assert "2 finished, 1 failed" in out.stdout and "cannot read" in out.stderr
+    client = MlflowClient(uri)
+    kids, _ = children(client, "failing")
+    status = {r.data.params["shape"]: r for r in kids}
+    assert {s: r.info.status for s, r in status.items()} == {
+        "torus": "FINISHED", "box": "FINISHED", str(tmp_path / "broken.ply"): "FAILED"}
+    failed = status[str(tmp_path / "broken.ply")]
+    assert "cannot read" in failed.data.tags["mpe3d.error"]
+    assert {a.path for a in client.list_artifacts(failed.info.run_id)} == {"error.txt"}
+    # A failed run is not retried by default, only with --rerun-failed.
+    code, out, _ = cli(capsys, "sweep", path, "--tracking-uri", uri)
+    assert code == 0 and "--rerun-failed retries them" in out
+    code, out, _ = cli(capsys, "sweep", path, "--tracking-uri", uri, "--rerun-failed",
+                       "--jobs", "1", "--no-artifacts")
+    assert code == 1 and "0 finished, 1 failed, 2 skipped" in out
+    assert len(children(client, "failing")[0]) == 4
+
+
+def test_force_reruns_everything(tmp_path, capsys):
+    path = tmp_path / "two.yaml"
+    path.write_text("name: two\nbase: {shape: torus, points: 64, solver: baseline}\n"
+                    "grid: {views: [3, 4]}\n")
+    uri = f"sqlite:///{tmp_path}/t.db"
+    assert cli(capsys, "sweep", path, "--jobs", "1", "--tracking-uri", uri)[0] == 0
+    code, out, _ = cli(capsys, "sweep", path, "--jobs", "1", "--tracking-uri", uri, "--force")
+    assert code == 0 and "2 finished" in out
+    assert len(children(MlflowClient(uri), "two")[0]) == 4
+    _, history, _ = cli(capsys, "runs", "two", "--tracking-uri", uri, "--history", "--format", "csv")
+    assert len(pd.read_csv(io.StringIO(history))) == 4
+    _, latest, _ = cli(capsys, "runs", "two", "--tracking-uri", uri, "--format", "csv")
+    assert len(pd.read_csv(io.StringIO(latest))) == 2
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(url, process, seconds=120):
+    deadline = time.time() + seconds
+    while time.time() < deadline:
+        assert process.poll() is None, "the server died while starting"
+        try:
+            with urllib.request.urlopen(url, timeout=2) as answer:
+                if answer.status == 200:
+                    return
+        except OSError:
+            time.sleep(0.3)
+    raise TimeoutError(url)
+
+
+def stop(process):
+    os.killpg(process.pid, signal.SIGTERM)  # the server's workers are its children
+    try:
+        process.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()
+
+
+FOUR = SWEEP.replace("name: tiny", "name: four").replace("repeats: 2", "repeats: 1")
+
+
+def test_real_mlflow_server_over_http(tmp_path, capsys, monkeypatch):
+    port = free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
+         "--workers", "1",
+         "--backend-store-uri", f"sqlite:///{tmp_path}/server.db",
+         "--artifacts-destination", str(tmp_path / "server-artifacts")],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        uri = f"http://127.0.0.1:{port}"
+        wait_for(uri + "/health", server)
+        path = tmp_path / "four.yaml"
+        path.write_text(FOUR)
+        out = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri, cwd=tmp_path)
+        assert out.returncode == 0, out.stderr
+        assert "View run" not in out.stdout  # MLflow's own chatter stays out of our output
+        kids, parents = children(MlflowClient(uri), "four")
+        assert len(kids) == 4 and {r.info.status for r in kids} == {"FINISHED"}
+        assert len(parents) == 1
+        assert {a.path for a in MlflowClient(uri).list_artifacts(kids[0].info.run_id)} == {
+            "reconstruction.ply", "ground_truth.ply"}
+        assert len(list((tmp_path / "server-artifacts").rglob("reconstruction.ply"))) == 4
+        assert not (tmp_path / "mlflow.db").exists()  # nothing went to the local default
+        monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
+        code, table, err = cli(capsys, "runs", "four", "--format", "csv")
+        assert code == 0 and len(pd.read_csv(io.StringIO(table))) == 4, err
+    finally:
+        stop(server)
+    code, _, err = cli(capsys, "sweep", path, "--tracking-uri", uri)
+    assert code == 2 and "cannot reach the MLflow tracking server" in err
+
+
+def test_dask_cluster_matches_one_job_exactly(tmp_path):
+    path = tmp_path / "four.yaml"
+    path.write_text(FOUR)
+    tables = {}
+    for name, flags in {"dask": ["--backend", "dask", "--jobs", "2"], "serial": ["--jobs", "1"]}.items():
+        uri = f"sqlite:///{tmp_path}/{name}.db"
+        out = run_cli("sweep", str(path), *flags, "--tracking-uri", uri, "--no-artifacts")
+        assert out.returncode == 0, out.stderr
+        assert "mpe3d: " not in out.stderr  # no dask log chatter
+        kids, _ = children(MlflowClient(uri), "four")
+        assert len(kids) == 4
+        tables[name] = {r.data.tags["mpe3d.config_hash"]: r.data.metrics for r in kids}
+        workers = {r.data.tags["mpe3d.worker"] for r in kids}
+        if name == "dask":
+            assert len(workers) >= 1 and all(str(os.getpid()) not in w for w in workers)
+    assert tables["dask"].keys() == tables["serial"].keys()
+    for key, metrics in tables["dask"].items():
+        for metric in ("cd", "cd_mean", "emd", "emd_mean", "roa", "stress", "iterations"):
+            assert metrics[metric] == tables["serial"][key][metric], (key, metric)
+
+
+def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
+    path = tmp_path / "two.yaml"
+    path.write_text("name: two\nbase: {shape: torus, points: 64, solver: baseline}\n")
+    assert cli(capsys, "sweep", path, "--jobs", "1", "--tracking-uri",
+               f"sqlite:///{tmp_path}/mlflow.db")[0] == 0
+    port = free_port()
+    from .helpers import mpe3d_command
+    ui = subprocess.Popen([*mpe3d_command(), "ui", "--port", str(port)], cwd=tmp_path,
+                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                          start_new_session=True)
+    try:
+        wait_for(f"http://127.0.0.1:{port}/health", ui)
+        request = urllib.request.Request(
+            f"http://127.0.0.1:{port}/api/2.0/mlflow/experiments/get-by-name?experiment_name=two")
+        with urllib.request.urlopen(request, timeout=10) as answer:
+            assert b'"two"' in answer.read()
+    finally:
+        stop(ui)
+    busy = socket.socket()
+    busy.bind(("127.0.0.1", 0))
+    busy.listen()
+    try:
+        code, _, err = cli(capsys, "ui", "--port", busy.getsockname()[1])
+        assert code == 2 and "is in use" in err
+    finally:
+        busy.close()
+    code, _, err = cli(capsys, "ui", "--tracking-uri", "http://127.0.0.1:1")
+    assert code == 2 and "open it in a browser" in err
