@@ -44,6 +44,13 @@ def coerce(key: str, value: Any, kind: type) -> Any:
         return int(value)
     if kind is float and is_number:
         return float(value)
+    if kind is float and isinstance(value, str):  # YAML 1.1 reads 1e-12 (no dot) as text
+        try:
+            number = float(value)
+        except ValueError:
+            number = float("nan")
+        if number == number and abs(number) != float("inf"):
+            return number
     if kind is str and isinstance(value, str):
         return value
     if kind not in _WANTED:  # an option without a typed default takes anything

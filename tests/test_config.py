@@ -41,6 +41,13 @@ def test_solver_change_keeps_the_other_values():
     assert "solver.max_iter" in cfg.flat() and "solver.c" not in cfg.flat()
 
 
+def test_yaml_exponent_without_dot_is_a_number():
+    # PyYAML reads 1e-12 as a string (YAML 1.1); a user means the number.
+    assert make_config({"solver.tol": "1e-12", "noise.fraction": "2e-1"})["solver.tol"] == 1e-12
+    with pytest.raises(MpeError, match="expected a number"):
+        make_config({"noise.fraction": "nan"})
+
+
 @pytest.mark.parametrize("overrides, message", [
     ({"viws": 3}, "unknown key 'viws' (did you mean 'views'?)"),
     ({"points": "many"}, "points: expected an integer, got 'many'"),
