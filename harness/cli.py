@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import signal
 import sys
 import time
 from pathlib import Path
@@ -106,6 +107,10 @@ def _nothing_to_do(plan, uri: str) -> str:
             f"tracked in {uri} ({', '.join(parts)}; --force reruns everything)")
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def cmd_sweep(args) -> int:
     from .sweep import load_sweep
 
@@ -132,6 +137,7 @@ def cmd_sweep(args) -> int:
         from .progress import RichReporter
         reporter = RichReporter()
     start = time.time()
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill` stops as cleanly as Ctrl-C
     try:
         outcomes = run_plans(plans, tracker, jobs=args.jobs, backend=backend,
                              scheduler=args.scheduler, artifacts=not args.no_artifacts,
@@ -140,6 +146,8 @@ def cmd_sweep(args) -> int:
         print("mpe3d: interrupted; every run logged so far is kept: run the same command "
               "to resume", file=sys.stderr)
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     for plan, outcome in zip(plans, outcomes):
         if plan.todo:
             _say(f"{outcome.name}: {outcome.finished} finished, {outcome.failed} failed, "

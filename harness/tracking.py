@@ -200,9 +200,14 @@ class Tracker:
             run = self.client.create_run(experiment_id, start_time=record.start_ms, tags=tags,
                                          run_name=run_name)
             run_id = run.info.run_id
-            self.client.log_batch(run_id, metrics=metrics, params=params,
-                                  tags=[RunTag("mlflow.runName", run_name)])
-            self._log_artifacts(run_id, record, artifacts)
+            try:
+                self.client.log_batch(run_id, metrics=metrics, params=params,
+                                      tags=[RunTag("mlflow.runName", run_name)])
+                self._log_artifacts(run_id, record, artifacts)
+            except BaseException:  # interrupted half-way: never leave a run RUNNING
+                with contextlib.suppress(Exception):
+                    self.client.set_terminated(run_id, status="KILLED")
+                raise
             self.client.set_terminated(run_id, status=record.status, end_time=record.end_ms)
         return run_id
 

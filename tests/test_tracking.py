@@ -273,3 +273,36 @@ def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
         busy.close()
     code, _, err = cli(capsys, "ui", "--tracking-uri", "http://127.0.0.1:1")
     assert code == 2 and "open it in a browser" in err
+
+
+def test_a_killed_sweep_keeps_its_runs_and_resumes(tmp_path):
+    path = tmp_path / "slow.yaml"
+    path.write_text("name: slow\nbase: {shape: torus, points: 400, views: 4,\n"
+                    "       solver: {name: sgd, max_iter: 300, tol: 1e-15}}\nrepeats: 4\n")
+    uri = f"sqlite:///{tmp_path}/t.db"
+    MlflowClient(uri).search_experiments()  # create the store now: no reads during its migration
+    from .helpers import mpe3d_command
+    sweep = subprocess.Popen([*mpe3d_command(), "sweep", str(path), "--jobs", "1",
+                              "--tracking-uri", uri, "--no-artifacts"],
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    finished = []
+    while not finished and time.time() < deadline:  # kill it once a run is logged
+        time.sleep(0.5)
+        assert sweep.poll() is None, sweep.communicate()
+        if MlflowClient(uri).get_experiment_by_name("slow") is not None:
+            finished = [r for r in children(MlflowClient(uri), "slow")[0]
+                        if r.info.status == "FINISHED"]
+    sweep.terminate()
+    _, err = sweep.communicate(timeout=60)
+    assert sweep.returncode == 130 and "run the same command to resume" in err
+    kids, (parent,) = children(MlflowClient(uri), "slow")
+    assert parent.info.status == "KILLED"
+    done = {r.data.tags["mpe3d.config_hash"] for r in kids if r.info.status == "FINISHED"}
+    assert 1 <= len(done) < 4
+    assert {r.info.status for r in kids} <= {"FINISHED", "KILLED"}  # nothing left RUNNING
+    resumed = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri, "--no-artifacts")
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"{4 - len(done)} finished, 0 failed, {len(done)} skipped" in resumed.stdout
+    kids, _ = children(MlflowClient(uri), "slow")
+    assert len({r.data.tags["mpe3d.config_hash"] for r in kids if r.info.status == "FINISHED"}) == 4
