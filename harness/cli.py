@@ -187,7 +187,7 @@ def cmd_runs(args) -> int:
     if args.format == "csv":
         print(table.to_csv(index=False), end="")
     else:
-        print(table.to_markdown(index=False, floatfmt=".4g"))
+        print(table.to_markdown(index=False, floatfmt=".4g", missingval=""))
     return 0
 
 
