@@ -92,8 +92,9 @@ def _dry_run(sweeps) -> int:
     for sweep in sweeps:
         dropped = f", {sweep.collapsed} duplicate grid points dropped" if sweep.collapsed else ""
         print(f"{sweep.name} ({sweep.path}): {len(sweep.runs)} runs{dropped}")
-        table = pd.DataFrame([{"hash": c.hash(), **{k: c.flat()[k] for k in sweep.varying}}
-                              for c in sweep.runs])
+        flats = [(c.hash(), c.flat()) for c in sweep.runs]
+        table = pd.DataFrame([{"hash": h, **{k: flat[k] for k in sweep.varying}}
+                              for h, flat in flats])
         print(table.to_string(index=False))
     print(f"{sum(len(s.runs) for s in sweeps)} runs in all")
     return 0
@@ -139,27 +140,28 @@ def cmd_sweep(args) -> int:
     start = time.time()
     previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill` stops as cleanly as Ctrl-C
     try:
-        outcomes = run_plans(plans, tracker, jobs=args.jobs, backend=backend,
-                             scheduler=args.scheduler, artifacts=not args.no_artifacts,
-                             reporter=reporter)
+        run_plans(plans, tracker, jobs=args.jobs, backend=backend, scheduler=args.scheduler,
+                  artifacts=not args.no_artifacts, reporter=reporter)
     except KeyboardInterrupt:
         print("mpe3d: interrupted; every run logged so far is kept: run the same command "
               "to resume", file=sys.stderr)
         return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
-    for plan, outcome in zip(plans, outcomes):
+    for plan in plans:
+        name = plan.sweep.name
         if plan.todo:
-            _say(f"{outcome.name}: {outcome.finished} finished, {outcome.failed} failed, "
-                 f"{plan.skipped} skipped (already tracked) of {outcome.total} runs", args.quiet)
+            _say(f"{name}: {plan.counts['FINISHED']} finished, {plan.counts['FAILED']} failed, "
+                 f"{plan.skipped} skipped (already tracked) of {len(plan.sweep.runs)} runs",
+                 args.quiet)
         for label, error in plan.failures[:5]:
             print(f"mpe3d: run failed: {label}: {error}", file=sys.stderr)
         if len(plan.failures) > 5:
             print(f"mpe3d: ... and {len(plan.failures) - 5} more failed runs "
-                  f"(`mpe3d runs '{outcome.name}'` lists them)", file=sys.stderr)
+                  f"(`mpe3d runs '{name}'` lists them)", file=sys.stderr)
     _say(f"{time.time() - start:.1f} s; tracked in {tracker.uri} "
          f"(`mpe3d runs NAME` prints a table, `mpe3d ui` opens the MLflow UI)", args.quiet)
-    return 1 if any(o.failed for o in outcomes) else 0
+    return 1 if any(plan.failures for plan in plans) else 0
 
 
 def _runs_table(frame, all_params: bool):

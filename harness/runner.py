@@ -45,19 +45,6 @@ class Plan:
         return len(self.todo) - sum(self.counts.values())
 
 
-@dataclass
-class Outcome:
-    """How one sweep went, for the summary line."""
-
-    name: str
-    total: int
-    finished: int
-    failed: int
-    skipped_finished: int
-    skipped_failed: int
-    parent_id: str | None
-
-
 class Reporter:
     """Progress callbacks; the default is silent (the CLI shows a progress bar)."""
 
@@ -139,8 +126,9 @@ def _records(tasks: list[tuple[int, RunConfig]], jobs: int, backend: str, schedu
 
 def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "loky",
               scheduler: str | None = None, artifacts: bool = True,
-              reporter: Reporter | None = None) -> list[Outcome]:
-    """Compute every planned run and log each result as it arrives.
+              reporter: Reporter | None = None) -> list[Plan]:
+    """Compute every planned run and log each result as it arrives; returns
+    ``plans`` with their counts and failures filled in.
 
     Each sweep with work to do gets a parent run; its children are nested
     under it. On an interrupt or a store failure the open parents are closed
@@ -175,9 +163,7 @@ def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "lok
         raise
     finally:
         reporter.stop()
-    return [Outcome(name=p.sweep.name, total=len(p.sweep.runs), finished=p.counts["FINISHED"],
-                    failed=p.counts["FAILED"], skipped_finished=p.skipped_finished,
-                    skipped_failed=p.skipped_failed, parent_id=p.parent_id) for p in plans]
+    return plans
 
 
 def _close(tracker, plan: Plan, status: str, started: float) -> None:
