@@ -21,6 +21,7 @@ from .execute import RunRecord, run_record
 from .sweep import Sweep
 
 BACKENDS = ("loky", "dask")
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -117,7 +118,10 @@ def _records(tasks: list[tuple[int, RunConfig]], jobs: int, backend: str, schedu
 
     calls = (delayed(_task)(i, config, keep_clouds) for i, config in tasks)
     if backend == "dask":
-        with _dask_client(jobs, scheduler), parallel_config(backend="dask"):
+        with _dask_client(jobs, scheduler) as client, parallel_config(backend="dask"):
+            if sum(client.nthreads().values()) == 1:
+                log.warning("the dask cluster has one thread: joblib then runs every run in "
+                            "this process, not on the cluster")
             yield from Parallel(n_jobs=-1, return_as="generator_unordered")(calls)
     else:
         yield from Parallel(n_jobs=jobs, backend="loky",
