@@ -6,3 +6,4 @@ from . import baseline, sgd  # noqa: F401  (registration)
 
 __all__ = ["Observations", "Reconstruction", "SOLVERS", "View", "check_observations",
            "get_solver", "register", "solve", "solver_options", "validate_options"]
+from . import factorize, refine  # noqa: F401,E402  (registration)

@@ -27,14 +27,32 @@ _RESERVED = ("observations", "init", "random_state")
 
 @dataclass(frozen=True)
 class View:
-    """What one view shows: the ids of its visible points and their 2D distances."""
+    """What one view shows: the ids of its visible points, and either their
+    pairwise 2D distances (the paper's input) or their 2D coordinates (what a
+    user with keypoints has; O(n) instead of O(n^2))."""
 
-    ids: np.ndarray  # (n_k,) sorted point ids
-    distances: np.ndarray  # (n_k, n_k) symmetric, zero diagonal
+    ids: np.ndarray  # (n_k,) point ids, each once
+    distances: np.ndarray | None = None  # (n_k, n_k) symmetric, zero diagonal
+    coordinates: np.ndarray | None = None  # (n_k, 2), in any 2D frame of the view
 
     @property
     def size(self) -> int:
         return len(self.ids)
+
+    def distance_matrix(self) -> np.ndarray:
+        """D^k, given or computed from the coordinates."""
+        if self.distances is not None:
+            return self.distances
+        from scipy.spatial.distance import cdist
+        return cdist(self.coordinates, self.coordinates)
+
+    def image(self, random_state=None) -> np.ndarray:
+        """The view's centred 2D points, exact up to an O(2) transform: the
+        coordinates themselves, or classical MDS of the distances (by Lanczos)."""
+        if self.coordinates is not None:
+            return self.coordinates - self.coordinates.mean(axis=0)
+        from .linalg import classical_mds
+        return classical_mds(self.distances, 2, random_state)
 
 
 @dataclass(frozen=True)
@@ -139,11 +157,14 @@ def check_observations(obs: Observations) -> None:
         raise MpeError(f"need at least 2 views, got {obs.n_views}")
     for k, view in enumerate(obs.views):
         n = view.size
-        D = view.distances
-        if D.shape != (n, n):
-            raise MpeError(f"view {k}: distance matrix has shape {D.shape}, expected ({n}, {n})")
-        if not np.all(np.isfinite(D)):
-            raise MpeError(f"view {k}: distance matrix holds NaN or inf")
+        if (view.distances is None) == (view.coordinates is None):
+            raise MpeError(f"view {k}: give either distances or coordinates")
+        data, what, shape = ((view.distances, "distance matrix", (n, n)) if view.coordinates is None
+                             else (view.coordinates, "coordinates", (n, 2)))
+        if data.shape != shape:
+            raise MpeError(f"view {k}: {what} has shape {data.shape}, expected {shape}")
+        if not np.all(np.isfinite(data)):
+            raise MpeError(f"view {k}: {what} holds NaN or inf")
         if n and (view.ids.min() < 0 or view.ids.max() >= obs.n_points):
             raise MpeError(f"view {k}: point ids outside 0..{obs.n_points - 1}")
         if len(np.unique(view.ids)) != n:

@@ -12,11 +12,11 @@ import warnings
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import shortest_path
-from scipy.sparse.linalg import eigsh
 
 from harness.errors import MpeError
 
 from .base import Observations, Reconstruction, register, require_memory
+from .linalg import classical_mds
 from .stress import Stress, project_rows
 
 # Neighbours per point in the graph that fills pairs never seen together.
@@ -34,7 +34,7 @@ def average_distances(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
     count = np.zeros((N, N), dtype=np.int32)
     for view in obs.views:
         block = np.ix_(view.ids, view.ids)
-        total[block] += view.distances
+        total[block] += view.distance_matrix()
         count[block] += 1
     seen = count > 0
     total[seen] /= count[seen]
@@ -75,26 +75,6 @@ def complete_distances(D: np.ndarray, seen: np.ndarray) -> np.ndarray:
     return out
 
 
-def classical_mds(D: np.ndarray, dim: int, random_state=None) -> np.ndarray:
-    """Torgerson MDS: top-``dim`` eigenvectors of -J D^2 J / 2, by Lanczos."""
-    n = len(D)
-    B = -0.5 * D ** 2
-    B -= B.mean(axis=0)
-    B -= B.mean(axis=1)[:, None]
-    if n <= dim + 1:
-        vals, vecs = np.linalg.eigh(B)
-        vals, vecs = vals[::-1][:dim], vecs[:, ::-1][:, :dim]
-    else:
-        rng = np.random.default_rng(random_state)
-        vals, vecs = eigsh(B, k=dim, which="LA", v0=rng.standard_normal(n))
-        order = np.argsort(vals)[::-1]
-        vals, vecs = vals[order], vecs[:, order]
-    X = vecs * np.sqrt(np.maximum(vals, 0.0))
-    if X.shape[1] < dim:
-        X = np.hstack([X, np.zeros((n, dim - X.shape[1]))])
-    return X
-
-
 def fit_projections(X: np.ndarray, obs: Observations, random_state=None) -> np.ndarray:
     """Projections P^k (orthonormal rows) that best map X to each view's MDS image.
 
@@ -104,7 +84,7 @@ def fit_projections(X: np.ndarray, obs: Observations, random_state=None) -> np.n
     """
     P = np.zeros((obs.n_views, 2, 3))
     for k, view in enumerate(obs.views):
-        Z = classical_mds(view.distances, 2, random_state)
+        Z = view.image(random_state)
         Xk = X[view.ids] - X[view.ids].mean(axis=0)
         U, _, Vt = np.linalg.svd(Xk.T @ Z, full_matrices=False)  # (3x2)
         P[k] = (U @ Vt).T

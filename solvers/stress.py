@@ -23,13 +23,32 @@ from .base import Observations
 _BLOCK_ENTRIES = 1 << 22
 
 
-class Stress:
-    """Evaluate the stress and its gradients for fixed observations."""
+LOSSES = ("l2", "huber", "soft_l1")
 
-    def __init__(self, observations: Observations):
+
+def _loss(r: np.ndarray, loss: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """rho(r) and phi(r) = rho'(r) / 2 per residual; both equal r^2 and r near 0,
+    so a robust stress is the paper's stress for small residuals."""
+    if loss == "huber":
+        clipped = np.clip(r, -scale, scale)
+        return np.where(np.abs(r) <= scale, r * r, 2 * scale * np.abs(r) - scale * scale), clipped
+    root = np.sqrt(1.0 + (r / scale) ** 2)  # soft_l1
+    return 2 * scale * scale * (root - 1.0), r / root
+
+
+class Stress:
+    """Evaluate the stress and its gradients for fixed observations.
+
+    ``loss="l2"`` is the paper's Eq. 1. ``huber`` and ``soft_l1`` replace each
+    squared residual r^2 by rho(r), quadratic up to ``scale`` and linear beyond
+    it, so that corrupted distances and wrong correspondences pull less.
+    """
+
+    def __init__(self, observations: Observations, loss: str = "l2", scale: float = 1.0):
+        self.loss, self.scale = loss, float(scale)
         self.n_points = observations.n_points
         self.ids = [view.ids for view in observations.views]
-        self.D = [np.asarray(view.distances, dtype=np.float64) for view in observations.views]
+        self.D = [np.asarray(view.distance_matrix(), dtype=np.float64) for view in observations.views]
         self.n_pairs = sum(len(i) * (len(i) - 1) // 2 for i in self.ids)
 
     def _view(self, k: int, Y: np.ndarray, mask: np.ndarray | None, want_grad: bool):
@@ -55,7 +74,11 @@ class Stress:
             r = np.subtract(D[a:b], e)
             if mask is not None:
                 r *= mask[a:b]
-            total += float(np.einsum("ij,ij->", r, r))
+            if self.loss == "l2":
+                total += float(np.einsum("ij,ij->", r, r))
+            else:
+                rho, r = _loss(r, self.loss, self.scale)
+                total += float(rho.sum())
             if want_grad:
                 r /= e  # now B
                 grad[a:b] = 2.0 * (r @ Y - r.sum(axis=1)[:, None] * Y[a:b])
@@ -80,6 +103,20 @@ class Stress:
             if want_P:
                 gP[k] = gY.T @ Xk
         return total, gX, gP
+
+    def residual_spread(self, X: np.ndarray, P: np.ndarray, rng: np.random.Generator,
+                        sample: int = 200_000) -> float:
+        """1.4826 x the median absolute residual D - ||P(x_i - x_j)|| over a random
+        sample of observed pairs: a robust estimate of the residuals' sigma."""
+        residuals = []
+        for k, ids in enumerate(self.ids):
+            n = len(ids)
+            i, j = rng.integers(0, n, size=(2, max(1, sample // len(self.ids))))
+            keep = i != j
+            i, j = i[keep], j[keep]
+            image = X[ids] @ P[k].T
+            residuals.append(self.D[k][i, j] - np.linalg.norm(image[i] - image[j], axis=1))
+        return 1.4826 * float(np.median(np.abs(np.concatenate(residuals))))
 
     def sample_masks(self, c: float, rng: np.random.Generator):
         """A minibatch xi ~ Xi(D, c): each observed pair kept with probability c."""

@@ -1,0 +1,62 @@
+"""Input that cannot determine a shape, said clearly.
+
+An error when no meaningful result exists (a view with fewer than 3 points,
+views that share too few points to be tied together); a warning when a
+result exists but part of it is not determined (points seen in fewer than 2
+views, the 2-view variable-setting ambiguity).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
+
+from harness.errors import MpeError
+
+from .base import Observations
+
+# Shared points that tie two views together: an O(2) transform and a shift per
+# view (fixed), or an affine camera (variable, 4 points not all coplanar).
+SHARED_FIXED, SHARED_VARIABLE = 3, 4
+
+
+class DegenerateWarning(UserWarning):
+    """The input leaves part of the reconstruction undetermined."""
+
+
+def warn(message: str) -> None:
+    warnings.warn(message, DegenerateWarning, stacklevel=3)
+
+
+def _ids(values: np.ndarray, limit: int = 10) -> str:
+    shown = ", ".join(map(str, values[:limit]))
+    return shown + (f", ... ({len(values)} in all)" if len(values) > limit else "")
+
+
+def check_geometry(obs: Observations) -> np.ndarray:
+    """Raise or warn on degenerate input; return the ids seen in fewer than 2 views."""
+    small = [k for k, view in enumerate(obs.views) if view.size < 3]
+    if small:
+        raise MpeError(f"views {small} show fewer than 3 points: a view needs 3 to be placed")
+    alpha = obs.visibility().astype(np.int32)
+    shared = alpha @ alpha.T
+    need = SHARED_FIXED if obs.fixed else SHARED_VARIABLE
+    graph = csr_matrix(shared >= need)
+    count, labels = connected_components(graph, directed=False)
+    if count > 1:
+        groups = [np.flatnonzero(labels == c).tolist() for c in range(count)]
+        across = max(int(shared[i, j]) for i in range(obs.n_views) for j in range(obs.n_views)
+                     if labels[i] != labels[j])
+        raise MpeError(f"views {' and '.join(map(str, groups))} share too few points to be tied "
+                       f"together (at most {across} in common, {need} needed)")
+    if not obs.fixed and obs.n_views == 2:
+        warn("2 views with variable projections leave the depth ambiguous (a known "
+             "ambiguity of two affine views): the shape is not determined")
+    unplaced = np.flatnonzero(alpha.sum(axis=0) < 2)
+    if len(unplaced):
+        warn(f"{len(unplaced)} points are seen in fewer than 2 views and cannot be placed: "
+             f"ids {_ids(unplaced)}")
+    return unplaced

@@ -1,0 +1,295 @@
+"""``factorize``: the point cloud from the views by linear algebra, no iterations on the stress.
+
+Noise-free views determine the cloud exactly, up to a rigid motion and a mirror
+image, and this solver recovers it to machine precision:
+
+1. Each view's 2D points z_i^k come from classical MDS of D^k (top two
+   eigenvectors by Lanczos), or from the given coordinates; they equal
+   P^k x_i up to an unknown O(2) transform and a translation.
+2. Fixed projections: P^k x_i = H_k z_i^k + s_k is linear in (X, H, s).
+   Eliminating X and s leaves a 4K x 4K quadratic form in the H_k whose
+   smallest eigenvector gives them; each H_k is projected onto O(2) and X
+   solved by least squares.
+3. Variable projections: the affine factorisation z_i^k = L_k^T x_i + t_k with
+   missing entries, by alternating least squares, then the metric upgrade (a
+   symmetric M with L_k^T M L_k = I for every view, M = A A^T, X <- X A^-T),
+   and each projection is orthonormalised.
+
+Everything is O(sum_k n_k) after the per-view MDS, with one 3x3 system per
+point; no N x N matrix is formed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .base import Observations, Reconstruction, register
+from .degenerate import check_geometry, warn
+from .stress import Stress, project_rows
+
+
+def _stacked(obs: Observations, images: list[np.ndarray]):
+    """Every observation (view k, point id, 2D point) as flat arrays."""
+    view = np.concatenate([np.full(v.size, k) for k, v in enumerate(obs.views)])
+    point = np.concatenate([v.ids for v in obs.views])
+    z = np.concatenate(images)
+    return view, point, z
+
+
+def _sum_by(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
+    """Sum rows of ``values`` (T x ...) into ``size`` bins by ``index``."""
+    flat = values.reshape(len(values), -1)
+    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=size)
+                    for c in range(flat.shape[1])], axis=1)
+    return out.reshape((size,) + values.shape[1:])
+
+
+def _solve_points(obs, view, point, P, rhs):
+    """Least-squares X for the fixed setting, for several right-hand sides.
+
+    Minimises sum_t ||P^k x_i - s_k - r_t||^2 over X and s, where ``rhs``
+    holds, per observation t, 2D targets r_t (T x 2 x m) that sum to zero
+    within each view. Then s_k = P^k xbar_k, and with M_i = sum P^kT P^k the
+    normal equations read M_i x_i - sum_k P^kT P^k xbar_k = sum_t P^kT r_t:
+    the view means xbar_k are eliminated through a small 3K x 3K system
+    (singular along translations: its minimum-norm solution is used).
+    """
+    N, K = obs.n_points, obs.n_views
+    PtP = np.einsum("kai,kaj->kij", P, P)
+    M_inv = np.linalg.pinv(_sum_by(point, PtP[view], N))  # points in < 2 views: min-norm
+    c = _sum_by(point, np.einsum("tai,tam->tim", P[view], rhs), N)  # (N, 3, m)
+    sizes = np.bincount(view, minlength=K).astype(float)
+    base = M_inv @ c  # X when every view mean is zero
+    # xbar_k = mean_i in k of M_i^-1 (c_i + sum_l PtP_l xbar_l) -> (I - T) xbar = b
+    b = _sum_by(view, base[point], K) / sizes[:, None, None]  # (K, 3, m)
+    T = np.zeros((K, 3, K, 3))
+    for l in range(K):
+        in_l = view == l
+        pts = point[in_l]
+        for k in range(K):  # points shared by views k and l
+            shared = np.intersect1d(pts, obs.views[k].ids, assume_unique=True)
+            if len(shared):
+                T[k, :, l, :] = M_inv[shared].sum(axis=0) @ PtP[l] / sizes[k]
+    system = np.eye(3 * K) - T.reshape(3 * K, 3 * K)
+    means = np.linalg.lstsq(system, b.reshape(3 * K, -1), rcond=None)[0].reshape(K, 3, -1)
+    coupled = _sum_by(point, np.einsum("tij,tjm->tim", PtP[view], means[view]), N)
+    return base + M_inv @ coupled  # (N, 3, m)
+
+
+# A 2x2 matrix c * O with O in O(2) is a*I + b*J (a rotation, det > 0) or a*F + b*G
+# (a reflection): two planes in vec-space (column-major [H11, H21, H12, H22]).
+_SIMILARITY = np.array([[1.0, 0.0], [0.0, 1.0], [0.0, -1.0], [1.0, 0.0]])
+_REFLECTION = np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 1.0], [-1.0, 0.0]])
+_MAX_ENUMERATED_VIEWS = 12
+
+
+def _orthogonal_transforms(Q: np.ndarray, K: int) -> np.ndarray:
+    """The H_k in O(2) minimising h^T Q h (step 2), as (K, 2, 2).
+
+    The unconstrained smallest eigenvector of Q is not enough: when the view
+    directions are nearly coplanar, a stretch along their common normal is an
+    almost-exact spurious solution with non-orthogonal H_k. Restricting each
+    H_k to the rotation or the reflection plane removes it; which of the two
+    each view needs (MDS may mirror a view) is found by trying all 2^K
+    choices, each a 2K x 2K eigenproblem (beyond 12 views, the signs of the
+    unconstrained solution's determinants choose).
+    """
+    if K <= _MAX_ENUMERATED_VIEWS:
+        choices = np.array(np.meshgrid(*[[False, True]] * K, indexing="ij")).reshape(K, -1).T
+    else:
+        unconstrained = np.linalg.eigh(Q)[1][:, 0].reshape(K, 2, 2).transpose(0, 2, 1)
+        choices = (np.linalg.det(unconstrained) < 0)[None, :]
+    best = (np.inf, None, None)
+    ranked = []
+    for mirrored in choices:
+        S = np.zeros((4 * K, 2 * K))
+        for k, flip in enumerate(mirrored):
+            S[4 * k:4 * k + 4, 2 * k:2 * k + 2] = _REFLECTION if flip else _SIMILARITY
+        values, vectors = np.linalg.eigh(S.T @ Q @ S)
+        ranked.append(values[0])
+        if values[0] < best[0]:
+            best = (values[0], S @ vectors[:, 0], values)
+    value, h, values = best
+    ranked = np.sort(ranked)
+    runner_up = min(values[1], ranked[1] if len(ranked) > 1 else np.inf)
+    if runner_up <= 1e-9 * max(abs(np.linalg.eigvalsh(Q)[-1]), 1e-300):
+        warn("the views do not pin the shape down: more than one set of view transforms "
+             "fits the data (too few points shared between views)")
+    H = h.reshape(K, 2, 2).transpose(0, 2, 1)
+    return H / np.sqrt(np.sum(H ** 2, axis=(1, 2)) / 2)[:, None, None]  # unit scale, as MDS
+
+
+def factorize_fixed(obs: Observations, images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """X and the per-view O(2) transforms H_k, fixed projections (step 2)."""
+    K = obs.n_views
+    P = np.asarray(obs.projections, dtype=float)
+    view, point, z = _stacked(obs, images)
+    # H_k z_t = (z_t^T kron I_2) vec(H_k): one column per entry of each H_k.
+    basis = np.zeros((len(z), 2, 4 * K))
+    cols = 4 * view
+    rows = np.arange(len(z))
+    basis[rows, 0, cols], basis[rows, 1, cols + 1] = z[:, 0], z[:, 0]
+    basis[rows, 0, cols + 2], basis[rows, 1, cols + 3] = z[:, 1], z[:, 1]
+    Y = _solve_points(obs, view, point, P, basis)  # X as a linear function of vec(H)
+    C = _sum_by(point, np.einsum("tai,tam->tim", P[view], basis), obs.n_points)
+    BtB = np.einsum("tam,tan->mn", basis, basis)
+    Q = BtB - np.einsum("nim,nik->mk", C, Y)
+    H = _orthogonal_transforms((Q + Q.T) / 2, K)
+    h = H.transpose(0, 2, 1).reshape(-1)
+    X = np.einsum("nim,m->ni", Y, h)
+    return X, H
+
+
+def _fit_views(X, view, point, z, K, rows):
+    """[L_k; t_k^T] from [x_i, 1] -> z_t over the observations in ``rows``: one 4x4
+    least-squares system per view (views with no such rows come back zero)."""
+    A = np.concatenate([X[point[rows]], np.ones((rows.sum(), 1))], axis=1)
+    AtA = _sum_by(view[rows], np.einsum("ta,tb->tab", A, A), K)
+    Atz = _sum_by(view[rows], np.einsum("ta,tb->tab", A, z[rows]), K)
+    Lt = np.einsum("kab,kbc->kac", np.linalg.pinv(AtA), Atz)  # (K, 4, 2)
+    return Lt[:, :3, :], Lt[:, 3, :]
+
+
+def _fit_points(L, t, view, point, z, N, rows):
+    """(sum L_k L_k^T) x_i = sum L_k (z_t - t_k) over ``rows``: a 3x3 system per point."""
+    v, p = view[rows], point[rows]
+    lhs = _sum_by(p, np.einsum("tab,tcb->tac", L[v], L[v]), N)
+    rhs = _sum_by(p, np.einsum("tab,tb->ta", L[v], z[rows] - t[v]), N)
+    return np.einsum("nij,nj->ni", np.linalg.pinv(lhs), rhs)
+
+
+def _affine_start(obs, view, point, z):
+    """An affine reconstruction grown from the two views sharing most points.
+
+    Two affine views fix the affine structure of the points they share (a
+    rank-3 factorisation of their centred 4 x m coordinates); every other view
+    is then resected from 4+ placed points and every point triangulated from
+    2+ placed views, until nothing more can be placed. Noise-free, this is
+    already the exact affine solution, so the alternating least squares that
+    follow only polish; from a random start they can stall.
+    """
+    N, K = obs.n_points, obs.n_views
+    alpha = obs.visibility()
+    shared = alpha.astype(np.int32) @ alpha.T.astype(np.int32)
+    np.fill_diagonal(shared, -1)
+    a, b = np.unravel_index(np.argmax(shared), shared.shape)
+    common = np.flatnonzero(alpha[a] & alpha[b])
+    W = np.hstack([_rows_of(obs.views[k], z[view == k], common) for k in (a, b)])
+    W = W - W.mean(axis=0)
+    U, S, Vt = np.linalg.svd(W, full_matrices=False)
+    X = np.zeros((N, 3))
+    X[common] = U[:, :3] * S[:3]
+    placed = np.zeros(N, dtype=bool)
+    placed[common] = True
+    registered = np.zeros(K, dtype=bool)
+    registered[[a, b]] = True
+    while True:
+        L, t = _fit_views(X, view, point, z, K, placed[point])
+        seen = np.bincount(view[placed[point]], minlength=K)
+        registered |= seen >= 4
+        in_registered = registered[view]
+        reach = np.bincount(point[in_registered], minlength=N)
+        grow = ~placed & (reach >= 2)
+        if not grow.any():
+            return X
+        X[grow] = _fit_points(L, t, view, point, z, N, in_registered)[grow]
+        placed |= grow
+
+
+def _rows_of(view_obs, zk, ids):
+    """Rows of one view's 2D points for the point ids ``ids``."""
+    order = np.argsort(view_obs.ids)
+    return zk[order[np.searchsorted(view_obs.ids, ids, sorter=order)]]
+
+
+def _affine_als(obs, view, point, z, rng, max_iter: int, tol: float):
+    """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares."""
+    N, K = obs.n_points, obs.n_views
+    X = _affine_start(obs, view, point, z)
+    everything = np.ones(len(z), dtype=bool)
+    # A point seen once says nothing about the views: it fits any of them.
+    informative = np.bincount(point, minlength=N)[point] >= 2
+    previous = float(np.finfo(float).max)
+    for iteration in range(1, max_iter + 1):
+        L, t = _fit_views(X, view, point, z, K, informative)
+        X = _fit_points(L, t, view, point, z, N, everything)
+        residual = np.einsum("tab,ta->tb", L[view], X[point]) + t[view] - z
+        rms = float(np.sqrt(np.mean(residual ** 2)))
+        if previous - rms <= tol * previous or rms <= 1e-14 * _scale(z):
+            break
+        previous = rms
+    return X, L, rms, iteration
+
+
+def _scale(z: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(z ** 2))) or 1.0
+
+
+def metric_upgrade(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """From an affine to a metric reconstruction (step 3).
+
+    Finds the symmetric M with l1^T M l1 = l2^T M l2 = 1 and l1^T M l2 = 0 for
+    every view (linear least squares in its 6 entries), writes M = A A^T and
+    returns X A^-T and the projections A^T L_k, orthonormalised.
+    """
+    iu = np.triu_indices(3)
+    halve = np.where(iu[0] == iu[1], 2.0, 1.0)
+
+    def row(a, b):  # a^T M b as coefficients of M's upper triangle
+        outer = np.einsum("ki,kj->kij", a, b)
+        return (outer + outer.transpose(0, 2, 1))[:, iu[0], iu[1]] / halve
+
+    l1, l2 = L[:, :, 0], L[:, :, 1]
+    system = np.concatenate([row(l1, l1), row(l2, l2), row(l1, l2)])
+    target = np.concatenate([np.ones(len(L)), np.ones(len(L)), np.zeros(len(L))])
+    m, _, rank, _ = np.linalg.lstsq(system, target, rcond=None)
+    if rank < 6:
+        warn("the metric upgrade is ambiguous (rank %d of 6): with variable projections, "
+             "2 views leave a depth ambiguity" % rank)
+    M = np.zeros((3, 3))
+    M[iu] = m
+    M = M + M.T - np.diag(np.diag(M))
+    values, vectors = np.linalg.eigh(M)
+    if values[0] <= 0:
+        warn("the metric upgrade is not positive definite; clipped (noisy views?)")
+        values = np.maximum(values, 1e-12 * max(values[-1], 1e-300))
+    A = vectors * np.sqrt(values)
+    X = X @ np.linalg.inv(A).T
+    P = project_rows(np.einsum("ia,kib->kba", A, L))
+    return X, P
+
+
+@register("factorize")
+def solve_factorize(observations: Observations, *, init: str = "smart", random_state=None,
+                    max_iter: int = 2000, tol: float = 1e-13) -> Reconstruction:
+    """Algebraic 3DMPE: exact on noise-free views (see module doc).
+
+    Parameters
+    ----------
+    max_iter : int, default 2000
+        Alternating least-squares sweeps of the affine factorisation
+        (variable setting only).
+    tol : float, default 1e-13
+        Stop the sweeps when the RMS residual improves by less than this
+        fraction.
+
+    ``init`` is ignored: nothing here depends on a starting point but the
+    random start of the alternating least squares, drawn from
+    ``random_state``.
+    """
+    rng = np.random.default_rng(random_state)
+    unplaced = check_geometry(observations)
+    images = [view.image(rng) for view in observations.views]
+    if observations.fixed:
+        X, _ = factorize_fixed(observations, images)
+        P = np.asarray(observations.projections, dtype=float)
+        iterations, termination = 1, "closed form"
+    else:
+        view, point, z = _stacked(observations, images)
+        X, L, rms, iterations = _affine_als(observations, view, point, z, rng, max_iter, tol)
+        X, P = metric_upgrade(X, L)
+        termination = f"affine factorisation, RMS residual {rms:.2e}"
+    stress = Stress(observations).value(X, P)
+    return Reconstruction(points=X, projections=P, stress=stress,
+                          stress_history=np.array([stress]), iterations=iterations,
+                          termination=termination, info={"unplaced": unplaced})
