@@ -46,6 +46,8 @@ def cmd_run(args) -> int:
     config = config_from_file(args.config, overrides) if args.config else make_config(overrides)
     result = run(config)
     summary = result.summary()
+    for message in summary["warnings"]:
+        print(f"mpe3d: warning: {message}", file=sys.stderr)
     if args.out:
         try:
             written = write_outputs(result, Path(args.out))

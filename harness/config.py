@@ -17,11 +17,12 @@ import yaml
 
 from .errors import MpeError, coerce, suggest
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # bump when a key's meaning changes: every cached run is redone
 
 VISIBILITY_MODES = ("all", "exact", "count", "raytrace")
 NOISE_TYPES = ("none", "distance", "correspondence")
 PROJECTIONS = ("fixed", "variable")
+OBSERVE = ("distances", "coordinates")
 INITS = ("smart", "random")
 ALIGNS = ("rigid", "ransac4")
 
@@ -49,6 +50,7 @@ KEYS: dict[str, Key] = {
     "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]"),
     "noise.amplitude": Key(0.05, float, "p: noise variance p*d (distance) or displacement radius p*d (correspondence), d = cloud diameter"),
     "projections": Key("fixed", str, "fixed: the solver is given P^k; variable: it estimates them", PROJECTIONS),
+    "observe": Key("distances", str, "what each view hands the solver: its distance matrix (the paper) or its points' 2D coordinates", OBSERVE),
     "init": Key("smart", str, "smart: start from the baseline (MDS); random: uniform in the unit cube", INITS),
     "align": Key("rigid", str, "alignment before CD/EMD: rigid (O(3) + translation) or ransac4 (paper Eq. 6-7)", ALIGNS),
     "seed": Key(0, int, "root seed; scene, noise, solver and metrics draw from separate streams of it"),
@@ -242,6 +244,9 @@ def _check_ranges(v: dict[str, Any]) -> None:
         raise bad("noise.amplitude", "must be >= 0")
     if v["seed"] < 0:
         raise bad("seed", "must be >= 0")
+    if v["observe"] == "coordinates" and v["noise.type"] == "distance":
+        raise MpeError("noise.type: distance noise perturbs distance matrices; with "
+                       "observe=coordinates use correspondence noise", key="noise.type")
 
 
 def make_config(overrides: Mapping[str, Any] | None = None,

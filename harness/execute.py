@@ -6,6 +6,7 @@ import os
 import socket
 import time
 import traceback
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -13,6 +14,7 @@ from typing import Any
 import numpy as np
 
 import solvers
+from solvers.degenerate import DegenerateWarning
 
 from . import metrics as metrics_mod
 from .config import RunConfig
@@ -40,6 +42,7 @@ class RunResult:
         out.update({k: self.metrics[k] for k in METRIC_KEYS})
         out.update({k: v for k, v in self.metrics.items() if k not in METRIC_KEYS})
         out["visible_per_view"] = self.scene.visible_per_view
+        out["warnings"] = self.facts.get("warnings", [])
         out["termination"] = self.reconstruction.termination
         out["wall_s"] = self.wall_s
         return out
@@ -51,12 +54,20 @@ def run(config: RunConfig) -> RunResult:
     streams = seed_streams(config["seed"])
     scene = build_scene(config, streams)
     observations, facts = observe(scene, config, streams)
-    recon = solvers.solve(config.solver, observations, init=config["init"],
-                          random_state=streams["solver"], **config.solver_options)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DegenerateWarning)
+        recon = solvers.solve(config.solver, observations, init=config["init"],
+                              random_state=streams["solver"], **config.solver_options)
+    for w in caught:  # degenerate-input notes travel with the result; others go on as usual
+        if not issubclass(w.category, DegenerateWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    facts["warnings"] = [str(w.message) for w in caught if issubclass(w.category, DegenerateWarning)]
     scores, aligned = metrics_mod.evaluate(scene.points, recon.points, config["align"],
                                            streams["metrics"])
     scores.update(stress=float(recon.stress), iterations=int(recon.iterations),
                   runtime_s=float(recon.runtime_s))
+    if "unplaced" in recon.info:
+        scores["unplaced"] = len(recon.info["unplaced"])
     return RunResult(config=config, metrics=scores, scene=scene, reconstruction=recon,
                      aligned=aligned, facts=facts, wall_s=time.perf_counter() - start)
 
@@ -96,6 +107,8 @@ def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
     recon = result.reconstruction
     facts = {**worker, "termination": recon.termination,
              "visible_per_view": ",".join(map(str, result.scene.visible_per_view))}
+    if result.facts.get("warnings"):
+        facts["warnings"] = " | ".join(result.facts["warnings"])
     return RunRecord(config=config, status="FINISHED", start_ms=int(start * 1000),
                      end_ms=int(time.time() * 1000),
                      metrics={**result.metrics, "wall_s": result.wall_s},

@@ -89,13 +89,18 @@ def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations
     if kind == "correspondence":
         seen, facts["correspondences_moved"] = noise_mod.correspondence_noise(scene.points, q, p, d, rng)
     P = scene.projections
+    as_coordinates = config["observe"] == "coordinates"
     largest = int(scene.visible.sum(axis=1).max())
-    require_memory(3 * 8 * largest ** 2,
-                   f"points={len(scene.points)}: a view's {largest}x{largest} distance matrix and its copies")
+    if not as_coordinates:
+        require_memory(3 * 8 * largest ** 2, f"points={len(scene.points)}: a view's "
+                       f"{largest}x{largest} distance matrix and its copies")
     out = []
     for k in range(len(P)):
         ids = np.flatnonzero(scene.visible[k])
         image = seen[ids] @ P[k].T
+        if as_coordinates:  # in the view's own frame: P^k x, as an orthographic camera sees it
+            out.append(View(ids=ids, coordinates=image))
+            continue
         D = cdist(image, image)
         if kind == "distance":
             D = noise_mod.distance_noise(D, q, p, d, rng)

@@ -22,6 +22,9 @@ from .stress import LOSSES, Stress
 
 # Huber's tuning constant: 95% efficiency under Gaussian residuals.
 _HUBER_K = 1.345
+# Stress / sum of squared distances below which the start is exact: RMS relative
+# residuals of 1e-9, the precision of the per-view Lanczos MDS.
+_EXACT = 1e-18
 
 
 def _skew(w: np.ndarray) -> np.ndarray:
@@ -110,10 +113,10 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
     theta0 = X0.ravel() if observations.fixed else np.concatenate([X0.ravel(), np.zeros(3 * len(P0))])
     f0 = f(theta0)[0]
     history = [f0]
-    if f0 <= tol * tol * _sum_squared_distances(observations):  # already at machine precision
+    if f0 <= _EXACT * _sum_squared_distances(observations):  # residuals at rounding level
         return Reconstruction(points=X0, projections=P0, stress=start.stress,
                               stress_history=np.array(history), iterations=0,
-                              termination="start already optimal (relative stress below tol^2)",
+                              termination="start already exact (relative stress below 1e-18)",
                               info={"unplaced": start.info["unplaced"], "loss": loss,
                                     "loss_scale": scale, "objective": f0, "start_stress": start.stress})
 
@@ -123,6 +126,8 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
     result = minimize(f, theta0, jac=True, method="L-BFGS-B", callback=record,
                       options={"maxiter": max_iter, "ftol": tol, "gtol": 0.0, "maxcor": 20})
     theta, termination = result.x, str(result.message)
+    if result.status == 2:  # L-BFGS-B's "ABNORMAL": its line search found no decrease
+        termination = "no further decrease at numerical precision"
     if result.fun > f0:  # L-BFGS-B's line search should prevent this; never trust it
         theta, termination = theta0, "kept the factorize start (no decrease)"
     X, P, _ = unpack(theta)

@@ -55,7 +55,7 @@ def test_yaml_exponent_without_dot_is_a_number():
     ({"views": 1}, "views: must be at least 2, got 1"),
     ({"views": 3, "visibility.k": 4}, "visibility.k: must be between 1 and views=3, got 4"),
     ({"visibility.mode": "exactly"}, "'exactly' is not one of all, exact, count, raytrace (did you mean 'exact'?)"),
-    ({"solver": "sdg"}, "unknown solver 'sdg' (known: baseline, sgd) (did you mean 'sgd'?)"),
+    ({"solver": "sdg"}, "unknown solver 'sdg' (known: baseline, factorize, refine, sgd) (did you mean 'sgd'?)"),
     ({"solver.max_itr": 5}, "unknown option 'solver.max_itr' for solver 'sgd' (options: "),
     ({"solver.max_iter": 2.5}, "solver.max_iter: expected int"),
     ({"noise.fraction": 1.5}, "noise.fraction: must be in [0, 1]"),
@@ -88,7 +88,7 @@ def test_malformed_yaml_names_file_and_line(tmp_path):
 @pytest.mark.parametrize("text, message", [
     ("shape: torus\nviws: 3\n", "unknown key 'viws' at {}:2 (did you mean 'views'?)"),
     ("shape: torus\nvisibility:\n  mode: all\n  k: many\n", "visibility.k: expected an integer, got 'many' at {}:4"),
-    ("solver: sdg\n", "unknown solver 'sdg' (known: baseline, sgd) at {}:1 (did you mean 'sgd'?)"),
+    ("solver: sdg\n", "unknown solver 'sdg' (known: baseline, factorize, refine, sgd) at {}:1 (did you mean 'sgd'?)"),
     ("points: 64\nsolver:\n  name: sgd\n  max_itr: 5\n", "unknown option 'solver.max_itr' for solver 'sgd'"),
 ])
 def test_config_file_errors_name_file_and_line(tmp_path, text, message):

@@ -98,13 +98,13 @@ def test_hash_is_stable_across_processes_and_pinned():
     here = make_config({"noise.fraction": 0.25, "noise.type": "distance", "solver.max_iter": 7,
                         "visibility.k": 2, "views": 5}).hash()
     assert hashes == {here}
-    assert here == "94988f15b81962fb"
+    assert here == "11c921e3ed660c8a"
 
 
 @pytest.mark.parametrize("text, message", [
     ("grid:\n  viws: [2, 3]\n", "unknown key 'viws' at {}:2 (did you mean 'views'?)"),
     ("gird:\n  views: [2]\n", "unknown key 'gird' at {}:1 (did you mean 'grid'?)"),
-    ("base:\n  points: 64\n  solver: {name: sdg}\n", "unknown solver 'sdg' (known: baseline, sgd) at {}:3"),
+    ("base:\n  points: 64\n  solver: {name: sdg}\n", "unknown solver 'sdg' (known: baseline, factorize, refine, sgd) at {}:3"),
     ("grid:\n  views: 4\n", "grid.views: expected a list of values, got 4"),
     ("grid:\n  views: []\n", "grid.views: empty list at {}:2"),
     ("grid:\n  views: [3, 4]\n  projections: []\n", "grid.projections: empty list at {}:3"),
