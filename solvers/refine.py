@@ -111,7 +111,7 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
     R0 = _rotations(P0)
     f, unpack = _objective(stress, X0.shape, R0, P0 if observations.fixed else None)
     theta0 = X0.ravel() if observations.fixed else np.concatenate([X0.ravel(), np.zeros(3 * len(P0))])
-    f0 = f(theta0)[0]
+    f0 = start.stress if loss == "l2" else f(theta0)[0]  # the start's stress is known
     history = [f0]
     if f0 <= _EXACT * _sum_squared_distances(observations):  # residuals at rounding level
         return Reconstruction(points=X0, projections=P0, stress=start.stress,

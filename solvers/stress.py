@@ -8,14 +8,15 @@ B_ij = w_ij (D_ij - e_ij) / e_ij (w is the minibatch mask, symmetric). Then
     dS/dy_i = -2 sum_j B_ij (y_i - y_j)   i.e.   G_Y = -2 (diag(B 1) - B) Y,
 
 and the chain rule through Y = X_vis P^T gives G_X[vis] += G_Y P and
-G_P = G_Y^T X_vis. Everything is dense matrix algebra over row blocks of the
-view's distance matrix, so memory stays bounded and no Python loop touches a
-pair.
+G_P = G_Y^T X_vis. Everything is dense array work over row blocks of the
+view's distance matrix (e from scipy's cdist), so memory stays bounded and no
+Python loop touches a pair.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from .base import Observations
 
@@ -55,31 +56,25 @@ class Stress:
         """Stress of view k and, if asked, dS/dY, for image points Y (n_k x 2)."""
         D = self.D[k]
         n = len(Y)
-        Y = Y - Y.mean(axis=0)  # centring keeps the Gram form of e^2 accurate
-        sq = np.einsum("ij,ij->i", Y, Y)
-        # e^2 = |y_i|^2 + |y_j|^2 - 2 y_i.y_j as one product of (n x 4) matrices
-        left = np.column_stack([Y, sq, np.ones(n)])
-        right = np.column_stack([-2.0 * Y, np.ones(n), sq])
         grad = np.zeros_like(Y) if want_grad else None
         total = 0.0
         step = max(1, _BLOCK_ENTRIES // max(n, 1))
         for a in range(0, n, step):
             b = min(n, a + step)
-            e = left[a:b] @ right.T
-            # The floor keeps 1/e finite on the diagonal and for coincident
-            # images; there r_ii = -1e-12 adds 1e-24 to the stress, and the
-            # B_ii terms cancel exactly in the gradient below.
-            np.maximum(e, 1e-24, out=e)
-            np.sqrt(e, out=e)
+            e = cdist(Y[a:b], Y)  # direct differences: exact to rounding, no Gram cancellation
             r = np.subtract(D[a:b], e)
             if mask is not None:
                 r *= mask[a:b]
             if self.loss == "l2":
-                total += float(np.einsum("ij,ij->", r, r))
+                flat = r.ravel()
+                total += float(flat @ flat)
             else:
                 rho, r = _loss(r, self.loss, self.scale)
                 total += float(rho.sum())
             if want_grad:
+                # The floor keeps 1/e finite on the diagonal and for coincident
+                # images, where r is 0 or the pair's B_ij terms cancel below.
+                np.maximum(e, 1e-12, out=e)
                 r /= e  # now B
                 grad[a:b] = 2.0 * (r @ Y - r.sum(axis=1)[:, None] * Y[a:b])
         # Each pair i > j appears twice in the full matrix.
