@@ -109,7 +109,7 @@ def _orthogonal_transforms(Q: np.ndarray, K: int) -> np.ndarray:
         ranked.append(values[0])
         if values[0] < best[0]:
             best = (values[0], S @ vectors[:, 0], values)
-    value, h, values = best
+    _, h, values = best
     ranked = np.sort(ranked)
     runner_up = min(values[1], ranked[1] if len(ranked) > 1 else np.inf)
     if runner_up <= 1e-9 * max(abs(np.linalg.eigvalsh(Q)[-1]), 1e-300):
@@ -202,7 +202,7 @@ def _rows_of(view_obs, zk, ids):
     return zk[order[np.searchsorted(view_obs.ids, ids, sorter=order)]]
 
 
-def _affine_als(obs, view, point, z, rng, max_iter: int, tol: float):
+def _affine_als(obs, view, point, z, max_iter: int, tol: float):
     """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares."""
     N, K = obs.n_points, obs.n_views
     X = _affine_start(obs, view, point, z)
@@ -273,9 +273,8 @@ def solve_factorize(observations: Observations, *, init: str = "smart", random_s
         Stop the sweeps when the RMS residual improves by less than this
         fraction.
 
-    ``init`` is ignored: nothing here depends on a starting point but the
-    random start of the alternating least squares, drawn from
-    ``random_state``.
+    ``init`` is ignored: nothing here depends on a starting point.
+    ``random_state`` seeds the Lanczos start vectors of the per-view MDS.
     """
     rng = np.random.default_rng(random_state)
     unplaced = check_geometry(observations)
@@ -286,7 +285,7 @@ def solve_factorize(observations: Observations, *, init: str = "smart", random_s
         iterations, termination = 1, "closed form"
     else:
         view, point, z = _stacked(observations, images)
-        X, L, rms, iterations = _affine_als(observations, view, point, z, rng, max_iter, tol)
+        X, L, rms, iterations = _affine_als(observations, view, point, z, max_iter, tol)
         X, P = metric_upgrade(X, L)
         termination = f"affine factorisation, RMS residual {rms:.2e}"
     stress = Stress(observations).value(X, P)
