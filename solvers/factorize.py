@@ -243,9 +243,9 @@ def metric_upgrade(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray
     system = np.concatenate([row(l1, l1), row(l2, l2), row(l1, l2)])
     target = np.concatenate([np.ones(len(L)), np.ones(len(L)), np.zeros(len(L))])
     m, _, rank, _ = np.linalg.lstsq(system, target, rcond=None)
-    if rank < 6:
-        warn("the metric upgrade is ambiguous (rank %d of 6): with variable projections, "
-             "2 views leave a depth ambiguity" % rank)
+    if rank < 6 and len(L) > 2:  # with 2 views, check_geometry has said so already
+        warn(f"the metric upgrade is ambiguous (rank {rank} of 6): the views' directions "
+             "do not fix the shape's proportions")
     M = np.zeros((3, 3))
     M[iu] = m
     M = M + M.T - np.diag(np.diag(M))
