@@ -118,6 +118,10 @@ def test_runs_table_prints_numbers_from_the_store(tracked, capsys, monkeypatch):
     assert code == 2 and "no experiment 'tnyi'" in err and "did you mean 'tiny'" in err
     code, _, err = cli(capsys, "runs", "tiny", "--tracking-uri", f"sqlite:///{folder}/none.db")
     assert code == 2 and "no tracking store at" in err
+    from .helpers import mpe3d_command
+    piped = subprocess.run(f"{' '.join(mpe3d_command())} runs tiny | head -1", shell=True,
+                           cwd=folder, capture_output=True, text=True, timeout=120)
+    assert piped.stdout.startswith("| status") and "Traceback" not in piped.stderr
 
 
 def test_a_raising_run_is_failed_and_the_others_finish(tmp_path, capsys):
