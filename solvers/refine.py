@@ -114,30 +114,37 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
     f0 = start.stress if loss == "l2" else f(theta0)[0]  # the start's stress is known
     history = [f0]
     if f0 <= _EXACT * _sum_squared_distances(observations):  # residuals at rounding level
-        return Reconstruction(points=X0, projections=P0, stress=start.stress,
-                              stress_history=np.array(history), iterations=0,
-                              termination="start already exact (relative stress below 1e-18)",
-                              info={"unplaced": start.info["unplaced"], "loss": loss,
-                                    "loss_scale": scale, "objective": f0, "start_stress": start.stress})
+        theta, value, iterations = theta0, f0, 0
+        termination = "start already exact (relative stress below 1e-18)"
+    else:
+        theta, value, iterations, termination = _minimise(f, theta0, history, max_iter, tol)
+    X, P, _ = unpack(theta)
+    P = np.array(P)
+    if theta is theta0:
+        paper_stress = start.stress
+    else:
+        paper_stress = value if loss == "l2" else Stress(observations).value(X, P)
+    return Reconstruction(points=X, projections=P, stress=paper_stress,
+                          stress_history=np.array(history), iterations=iterations,
+                          termination=termination,
+                          info={"unplaced": start.info["unplaced"], "loss": loss,
+                                "loss_scale": scale, "objective": value,
+                                "start_stress": start.stress})
 
+
+def _minimise(f, theta0: np.ndarray, history: list, max_iter: int, tol: float):
+    """L-BFGS-B from theta0; the start back if it somehow ends higher."""
     def record(intermediate_result):  # scipy passes the OptimizeResult by this name
         history.append(float(intermediate_result.fun))
 
     result = minimize(f, theta0, jac=True, method="L-BFGS-B", callback=record,
                       options={"maxiter": max_iter, "ftol": tol, "gtol": 0.0, "maxcor": 20})
-    theta, termination = result.x, str(result.message)
+    termination = str(result.message)
     if result.status == 2:  # L-BFGS-B's "ABNORMAL": its line search found no decrease
         termination = "no further decrease at numerical precision"
-    if result.fun > f0:  # L-BFGS-B's line search should prevent this; never trust it
-        theta, termination = theta0, "kept the factorize start (no decrease)"
-    X, P, _ = unpack(theta)
-    P = np.array(P)
-    paper_stress = Stress(observations).value(X, P) if loss != "l2" else min(result.fun, f0)
-    return Reconstruction(points=X, projections=P, stress=paper_stress,
-                          stress_history=np.array(history), iterations=int(result.nit),
-                          termination=termination,
-                          info={"unplaced": start.info["unplaced"], "loss": loss, "loss_scale": scale,
-                                "objective": float(min(result.fun, f0)), "start_stress": start.stress})
+    if result.fun > history[0]:  # the line search should prevent this; never trust it
+        return theta0, history[0], int(result.nit), "kept the factorize start (no decrease)"
+    return result.x, float(result.fun), int(result.nit), termination
 
 
 def _sum_squared_distances(observations: Observations) -> float:
