@@ -2,8 +2,7 @@
 
 from .base import (Observations, Reconstruction, SOLVERS, View, check_observations,
                    get_solver, register, solve, solver_options, validate_options)
-from . import baseline, sgd  # noqa: F401  (registration)
+from . import baseline, factorize, refine, sgd  # noqa: F401  (registration)
 
 __all__ = ["Observations", "Reconstruction", "SOLVERS", "View", "check_observations",
            "get_solver", "register", "solve", "solver_options", "validate_options"]
-from . import factorize, refine  # noqa: F401,E402  (registration)

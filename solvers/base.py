@@ -19,8 +19,11 @@ from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
+from scipy.spatial.distance import cdist
 
 from harness.errors import MpeError, coerce, suggest
+
+from .linalg import classical_mds
 
 _RESERVED = ("observations", "init", "random_state")
 
@@ -43,7 +46,6 @@ class View:
         """D^k, given or computed from the coordinates."""
         if self.distances is not None:
             return self.distances
-        from scipy.spatial.distance import cdist
         return cdist(self.coordinates, self.coordinates)
 
     def image(self, random_state=None) -> np.ndarray:
@@ -51,7 +53,6 @@ class View:
         coordinates themselves, or classical MDS of the distances (by Lanczos)."""
         if self.coordinates is not None:
             return self.coordinates - self.coordinates.mean(axis=0)
-        from .linalg import classical_mds
         return classical_mds(self.distances, 2, random_state)
 
 

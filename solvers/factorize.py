@@ -62,14 +62,9 @@ def _solve_points(obs, view, point, P, rhs):
     base = M_inv @ c  # X when every view mean is zero
     # xbar_k = mean_i in k of M_i^-1 (c_i + sum_l PtP_l xbar_l) -> (I - T) xbar = b
     b = _sum_by(view, base[point], K) / sizes[:, None, None]  # (K, 3, m)
-    T = np.zeros((K, 3, K, 3))
-    for l in range(K):
-        in_l = view == l
-        pts = point[in_l]
-        for k in range(K):  # points shared by views k and l
-            shared = np.intersect1d(pts, obs.views[k].ids, assume_unique=True)
-            if len(shared):
-                T[k, :, l, :] = M_inv[shared].sum(axis=0) @ PtP[l] / sizes[k]
+    alpha = obs.visibility().astype(float)
+    shared = np.einsum("kn,ln,nij->klij", alpha, alpha, M_inv)  # sum of M_i^-1 over k and l
+    T = np.einsum("klij,ljm->kilm", shared, PtP) / sizes[:, None, None, None]
     system = np.eye(3 * K) - T.reshape(3 * K, 3 * K)
     means = np.linalg.lstsq(system, b.reshape(3 * K, -1), rcond=None)[0].reshape(K, 3, -1)
     coupled = _sum_by(point, np.einsum("tij,tjm->tim", PtP[view], means[view]), N)
