@@ -115,27 +115,31 @@ def _interrupt(signum, frame):
     raise KeyboardInterrupt
 
 
-def cmd_sweep(args) -> int:
-    from .sweep import load_sweep
-
-    sweeps = [load_sweep(path) for path in args.files]  # every file is valid before any run
+def _check_parallel(args) -> str:
+    """The backend the flags ask for, after checking they fit together."""
     backend = args.backend or ("dask" if args.scheduler else "loky")
     if args.scheduler and backend != "dask":
         raise MpeError("--scheduler needs --backend dask")
     if args.jobs == 0 or args.jobs < -1:
         raise MpeError(f"--jobs: expected a positive count or -1 (all cores), got {args.jobs}")
-    if args.dry_run:
-        return _dry_run(sweeps)
-    from .runner import plan_sweeps, run_plans
-    from .tracking import Tracker
+    return backend
 
-    tracker = Tracker(args.tracking_uri)
+
+def run_sweeps(sweeps, args, tracker) -> tuple[list, int]:
+    """Plan ``sweeps`` against ``tracker``, run what is missing, print the outcome.
+
+    Returns the plans and the exit code: 0, 1 when a run failed, 130 when
+    interrupted (every run logged so far is kept).
+    """
+    from .runner import plan_sweeps, run_plans
+
+    backend = _check_parallel(args)
     plans = plan_sweeps(sweeps, tracker, rerun_failed=args.rerun_failed, force=args.force)
     for plan in plans:
         if not plan.todo:
             _say(_nothing_to_do(plan, tracker.uri), args.quiet)
     if not any(plan.todo for plan in plans):
-        return 0
+        return plans, 0
     reporter = None
     if not args.quiet:
         from .progress import RichReporter
@@ -148,7 +152,7 @@ def cmd_sweep(args) -> int:
     except KeyboardInterrupt:
         print("mpe3d: interrupted; every run logged so far is kept: run the same command "
               "to resume", file=sys.stderr)
-        return 130
+        return plans, 130
     finally:
         signal.signal(signal.SIGTERM, previous)
     for plan in plans:
@@ -164,7 +168,19 @@ def cmd_sweep(args) -> int:
                   f"(`mpe3d runs '{name}'` lists them)", file=sys.stderr)
     _say(f"{time.time() - start:.1f} s; tracked in {tracker.uri} "
          f"(`mpe3d runs NAME` prints a table, `mpe3d ui` opens the MLflow UI)", args.quiet)
-    return 1 if any(plan.failures for plan in plans) else 0
+    return plans, 1 if any(plan.failures for plan in plans) else 0
+
+
+def cmd_sweep(args) -> int:
+    from .sweep import load_sweep
+
+    sweeps = [load_sweep(path, args.scale) for path in args.files]  # all valid before any run
+    _check_parallel(args)
+    if args.dry_run:
+        return _dry_run(sweeps)
+    from .tracking import Tracker
+
+    return run_sweeps(sweeps, args, Tracker(args.tracking_uri))[1]
 
 
 def _runs_table(frame, all_params: bool):
@@ -220,6 +236,23 @@ def cmd_ui(args) -> int:
         return 0
 
 
+def _add_run_options(parser) -> None:
+    """The options of every command that runs sweeps."""
+    parser.add_argument("--jobs", type=int, default=-1, metavar="N",
+                        help="parallel runs (default -1: one per core; dask: local workers)")
+    parser.add_argument("--backend", choices=BACKENDS, default=None,
+                        help="loky (one machine, default) or dask (a cluster)")
+    parser.add_argument("--scheduler", metavar="ADDRESS",
+                        help="dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local cluster)")
+    parser.add_argument("--tracking-uri", metavar="URI",
+                        help="MLflow store (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
+    parser.add_argument("--rerun-failed", action="store_true", help="retry runs that FAILED before")
+    parser.add_argument("--force", action="store_true", help="rerun every run, even FINISHED ones")
+    parser.add_argument("--no-artifacts", action="store_true",
+                        help="do not store reconstruction.ply and ground_truth.ply")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mpe3d", description="3D multi-perspective embedding: "
                      "rebuild a 3D point cloud from partial 2D views.")
@@ -238,19 +271,9 @@ def build_parser() -> argparse.ArgumentParser:
                            "already FINISHED in its MLflow experiment, and run the rest in parallel. "
                            "Exit code 1 if a run failed, 2 on bad input.")
     sweep.add_argument("files", nargs="+", metavar="FILE.yaml")
-    sweep.add_argument("--jobs", type=int, default=-1, metavar="N",
-                       help="parallel runs (default -1: one per core; dask: local workers)")
-    sweep.add_argument("--backend", choices=BACKENDS, default=None,
-                       help="loky (one machine, default) or dask (a cluster)")
-    sweep.add_argument("--scheduler", metavar="ADDRESS",
-                       help="dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local cluster)")
-    sweep.add_argument("--tracking-uri", metavar="URI",
-                       help="MLflow store (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
-    sweep.add_argument("--rerun-failed", action="store_true", help="retry runs that FAILED before")
-    sweep.add_argument("--force", action="store_true", help="rerun every run, even FINISHED ones")
-    sweep.add_argument("--no-artifacts", action="store_true",
-                       help="do not store reconstruction.ply and ground_truth.ply")
-    sweep.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+    sweep.add_argument("--scale", default="full", metavar="NAME",
+                       help="one of the files' scales, e.g. quick (default: full, the file as written)")
+    _add_run_options(sweep)
     sweep.add_argument("--dry-run", action="store_true", help="list the expanded runs and stop")
     sweep.set_defaults(func=cmd_sweep)
     runs = sub.add_parser("runs", help="print the runs of an experiment as a table")

@@ -8,6 +8,8 @@ A sweep file has these top-level keys (see ``sweeps/README.md``)::
     grid: {views: [2, 3, 4], projections: [fixed, variable]}  # Cartesian product
     zip: {visibility.k: [1, 2, 3], views: [2, 3, 4]}          # vary together
     repeats: 3                     # seeds 0..2, or `seeds: [...]`
+    scale:                         # named smaller versions; the file as written is "full"
+      quick: {grid: {views: [2, 4]}, repeats: 1}
 
 ``zip`` may also be a list of such mappings (each group varies on its own,
 and the groups are crossed with each other and with ``grid``). A list item
@@ -30,7 +32,9 @@ from .config import ALIASES, KEYS, RunConfig, _coerce, flatten, load_yaml, make_
 from .errors import MpeError, suggest
 from .shapes import check_shape
 
-TOP_LEVEL = ("name", "description", "base", "grid", "zip", "repeats", "seeds")
+TOP_LEVEL = ("name", "description", "base", "grid", "zip", "repeats", "seeds", "scale")
+SCALABLE = ("base", "grid", "zip", "repeats", "seeds")  # what a scale may override
+FULL = "full"  # the scale of a file as written
 
 
 @dataclass(frozen=True)
@@ -44,6 +48,8 @@ class Sweep:
     runs: tuple[RunConfig, ...]
     varying: tuple[str, ...]  # the keys whose value differs between runs
     collapsed: int  # grid points that duplicated an earlier one and were dropped
+    scale: str = FULL
+    scales: tuple[str, ...] = (FULL,)  # every scale the file offers
 
     def label(self, config: RunConfig) -> str:
         """``views=4 projections=fixed seed=0``: what sets this run apart."""
@@ -233,8 +239,56 @@ def _expand(base: Setting, axes: list[list[Setting]], src: _Source) -> list[RunC
     return runs
 
 
-def load_sweep(path: str | Path) -> Sweep:
-    """Read, validate and expand a sweep file; every error names ``file:line``."""
+def _scales(data: Mapping, src: _Source) -> dict[str, Mapping]:
+    """The file's named scales, each a mapping of the sections it overrides."""
+    section = data.get("scale") or {}
+    if not isinstance(section, Mapping):
+        raise src.error("scale: expected a mapping of scale names to overrides", "scale")
+    for name, override in section.items():
+        at = f"scale.{name}"
+        if name == FULL:
+            raise src.error(f"{at}: '{FULL}' is the file as written; it takes no overrides", at)
+        if not isinstance(override, Mapping):
+            raise src.error(f"{at}: expected a mapping of {', '.join(SCALABLE)}", at)
+        for key in override:
+            if key not in SCALABLE:
+                raise src.error(f"{at}: a scale overrides only {', '.join(SCALABLE)}, not '{key}'",
+                                f"{at}.{key}", suggest(str(key), SCALABLE))
+    return dict(section)
+
+
+def _merge(section: Any, override: Any) -> Any:
+    """A scale's base or grid on top of the file's: dotted keys replace one by one."""
+    if not isinstance(section, Mapping) or not isinstance(override, Mapping):
+        return override
+    return {**flatten(section), **flatten(override)}
+
+
+def _apply_scale(data: Mapping, lines: dict[str, int], scale: str, scales: Mapping,
+                 src: _Source) -> tuple[dict, dict[str, int]]:
+    """``data`` with scale ``scale`` applied, and the lines of the values it wrote."""
+    if scale == FULL:
+        return dict(data), lines
+    if scale not in scales:
+        offered = ", ".join([FULL, *scales])
+        raise MpeError(f"{src.path} has no scale '{scale}' (it has: {offered})",
+                       hint=suggest(scale, [FULL, *scales]))
+    data, lines = dict(data), dict(lines)
+    prefix = f"scale.{scale}."
+    lines.update({k[len(prefix):]: v for k, v in lines.items() if k.startswith(prefix)})
+    for key, override in scales[scale].items():
+        if key in ("repeats", "seeds"):  # one replaces the other
+            data.pop("seeds" if key == "repeats" else "repeats", None)
+        data[key] = _merge(data.get(key), override) if key in ("base", "grid") else override
+    return data, lines
+
+
+def load_sweep(path: str | Path, scale: str = FULL) -> Sweep:
+    """Read, validate and expand a sweep file at one of its scales.
+
+    Every error names ``file:line``; a scale's override is reported at its
+    own line.
+    """
     path = Path(path)
     data, lines = load_yaml(path, "sweep file")
     src = _Source(path, lines)
@@ -243,6 +297,9 @@ def load_sweep(path: str | Path) -> Sweep:
     for key in data:
         if key not in TOP_LEVEL:
             raise src.error(f"unknown key '{key}'", str(key), suggest(str(key), TOP_LEVEL))
+    scales = _scales(data, src)
+    data, lines = _apply_scale(data, lines, scale, scales, src)
+    src = _Source(path, lines)
     name = data.get("name", path.stem)
     if not isinstance(name, str) or not name.strip():
         raise src.error(f"name: expected a non-empty string, got {name!r}", "name")
@@ -261,7 +318,8 @@ def load_sweep(path: str | Path) -> Sweep:
     unique = list(unique.values())
     return Sweep(name=name.strip(), description=description.strip(), path=path,
                  sha256=hashlib.sha256(path.read_bytes()).hexdigest(), runs=tuple(unique),
-                 varying=varying_keys(unique), collapsed=len(runs) - len(unique))
+                 varying=varying_keys(unique), collapsed=len(runs) - len(unique),
+                 scale=scale, scales=(FULL, *scales))
 
 
 def varying_keys(configs: Iterable[RunConfig]) -> tuple[str, ...]:

@@ -162,6 +162,7 @@ class Tracker:
 
         commit = code_version(sweep.path.resolve())
         tags = {"mpe3d.sweep_file": str(sweep.path), "mpe3d.sweep_sha256": sweep.sha256,
+                "mpe3d.scale": sweep.scale,
                 "mpe3d.version": __version__, "mpe3d.host": socket.gethostname(),
                 "mlflow.note.content": sweep.description, **tags}
         if commit:

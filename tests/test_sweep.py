@@ -174,3 +174,51 @@ def test_dry_run_lists_runs_without_tracking(tmp_path, capsys):
 @pytest.mark.parametrize("path", sorted((REPO / "sweeps").rglob("*.yaml")), ids=lambda p: p.name)
 def test_shipped_sweeps_are_valid(path):
     assert load_sweep(path).runs
+
+
+SCALED = """
+    name: scaled
+    base: {shape: torus, points: 256, visibility: {mode: exact, k: 2}}
+    grid:
+      views: [2, 3, 4]
+      projections: [fixed, variable]
+    repeats: 3
+    scale:
+      quick:
+        base: {points: 64}
+        grid: {views: [3]}
+        seeds: [5]
+      tiny:
+        zip: {views: [2, 3], visibility.k: [1, 2]}
+    """
+
+
+def test_scales_override_sections_and_share_the_name(tmp_path):
+    path = write(tmp_path, SCALED)
+    full, quick = load_sweep(path), load_sweep(path, "quick")
+    assert full.scales == ("full", "quick", "tiny") and quick.scale == "quick"
+    assert len(full.runs) == 3 * 2 * 3 and {c["points"] for c in full.runs} == {256}
+    # quick: base keys merge one by one, a grid key is replaced, seeds replace repeats
+    assert len(quick.runs) == 2
+    assert {(c["points"], c["views"], c["seed"], c["visibility.k"]) for c in quick.runs} == {(64, 3, 5, 2)}
+    assert quick.name == full.name == "scaled"  # one experiment: scales share cached runs
+
+
+def test_scale_errors_name_the_line_of_the_override(tmp_path):
+    path = write(tmp_path, SCALED)
+    # tiny adds a zip on top of the file's grid, so views would vary twice
+    with pytest.raises(MpeError, match=r"varies in two places.*s.yaml:13"):
+        load_sweep(path, "tiny")
+    with pytest.raises(MpeError, match=r"has no scale 'quik' \(it has: full, quick, tiny\).*quick"):
+        load_sweep(path, "quik")
+    bad = write(tmp_path, SCALED.replace("points: 64", "points: 2"), "bad.yaml")
+    load_sweep(bad)  # the full scale does not see the override
+    with pytest.raises(MpeError, match=r"points: must be at least 4.*bad.yaml:9"):
+        load_sweep(bad, "quick")
+    for text, message in [("scale: {quick: {name: x}}", r"overrides only base.*not 'name'"),
+                          ("scale: {full: {repeats: 1}}", "'full' is the file as written"),
+                          ("scale: [quick]", "expected a mapping of scale names")]:
+        p = write(tmp_path, "base: {shape: box}\n" + text, "e.yaml")
+        with pytest.raises(MpeError, match=message):
+            load_sweep(p)
+    assert load_sweep(write(tmp_path, "base: {shape: box}", "f.yaml"), "full").scales == ("full",)
