@@ -20,6 +20,7 @@ from .errors import MpeError, coerce, suggest
 SCHEMA_VERSION = 2  # bump when a key's meaning changes: every cached run is redone
 
 VISIBILITY_MODES = ("all", "exact", "count", "raytrace")
+VIEW_LAYOUTS = ("band", "sphere")
 NOISE_TYPES = ("none", "distance", "correspondence")
 PROJECTIONS = ("fixed", "variable")
 OBSERVE = ("distances", "coordinates")
@@ -36,6 +37,9 @@ class Key:
     doc: str
     choices: tuple = ()
     optional: bool = False  # ``None`` is a valid value
+    # Keys added after a cache already existed are hashed only away from their
+    # default, so adding a key never invalidates the runs tracked before it.
+    hashed_at_default: bool = True
 
 
 KEYS: dict[str, Key] = {
@@ -43,9 +47,11 @@ KEYS: dict[str, Key] = {
     "points": Key(512, int, "number N of points sampled area-uniformly on the surface (>= 4)"),
     "views": Key(4, int, "number K of views (>= 2)"),
     "angle_range": Key(360.0, float, "angle band theta_r in degrees from which the view angles are drawn (0 < theta_r <= 360)"),
+    "view_layout": Key("band", str, "band: angles drawn from theta_r split into K bins (the paper); sphere: K nearly equidistant directions (Fibonacci lattice, randomly turned)", VIEW_LAYOUTS, hashed_at_default=False),
     "visibility.mode": Key("exact", str, "which points each view sees", VISIBILITY_MODES),
     "visibility.k": Key(3, int, "mode exact: every point is visible in exactly k views (1 <= k <= views)"),
     "visibility.count": Key(None, int, "mode count: every view keeps this many random points; null means round(0.75 * points)", optional=True),
+    "visibility.min_views": Key(0, int, "keep only the points visible in at least this many views (0 keeps all), as in the paper's raytrace-count figure", hashed_at_default=False),
     "noise.type": Key("none", str, "distance: Gaussian noise on distance rows; correspondence: wrong correspondences", NOISE_TYPES),
     "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]"),
     "noise.amplitude": Key(0.05, float, "p: noise variance p*d (distance) or displacement radius p*d (correspondence), d = cloud diameter"),
@@ -101,7 +107,9 @@ class RunConfig:
 
     def hash(self) -> str:
         """Canonical SHA-256 of the resolved values and the schema version."""
-        payload = json.dumps({"schema": SCHEMA_VERSION, "config": self.flat()},
+        flat = {key: value for key, value in self.flat().items()
+                if key not in KEYS or KEYS[key].hashed_at_default or value != KEYS[key].default}
+        payload = json.dumps({"schema": SCHEMA_VERSION, "config": flat},
                              sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
@@ -235,6 +243,8 @@ def _check_ranges(v: dict[str, Any]) -> None:
         raise bad("angle_range", "must be in (0, 360] degrees")
     if not 1 <= v["visibility.k"] <= v["views"]:
         raise bad("visibility.k", f"must be between 1 and views={v['views']}")
+    if not 0 <= v["visibility.min_views"] <= v["views"]:
+        raise bad("visibility.min_views", f"must be between 0 and views={v['views']}")
     count = v["visibility.count"]
     if count is not None and not 2 <= count <= v["points"]:
         raise bad("visibility.count", f"must be between 2 and points={v['points']}")

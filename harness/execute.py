@@ -65,7 +65,7 @@ def run(config: RunConfig) -> RunResult:
     scores, aligned = metrics_mod.evaluate(scene.points, recon.points, config["align"],
                                            streams["metrics"])
     scores.update(stress=float(recon.stress), iterations=int(recon.iterations),
-                  runtime_s=float(recon.runtime_s))
+                  runtime_s=float(recon.runtime_s), points_kept=len(scene.points))
     if "unplaced" in recon.info:
         scores["unplaced"] = len(recon.info["unplaced"])
     return RunResult(config=config, metrics=scores, scene=scene, reconstruction=recon,

@@ -38,7 +38,6 @@ class Scene:
 
     mesh: trimesh.Trimesh
     points: np.ndarray  # (N, 3)
-    angles: np.ndarray  # (K, 3) degrees
     rotations: np.ndarray  # (K, 3, 3)
     visible: np.ndarray  # (K, N) bool: the visibility vectors
 
@@ -65,14 +64,27 @@ def _visibility(config: RunConfig, mesh, points, R, rng) -> np.ndarray:
 
 
 def build_scene(config: RunConfig, streams=None) -> Scene:
-    """Sample the shape, draw the views and decide visibility."""
+    """Sample the shape, draw the views and decide visibility.
+
+    With ``visibility.min_views = m`` the scene keeps only the points seen in
+    at least m views: they are both the ground truth and what is observed.
+    """
     streams = streams or seed_streams(config["seed"])
     mesh = shapes.load_shape(config["shape"])
     points = shapes.sample_points(mesh, config["points"], streams["sampling"])
-    angles = views.draw_angles(config["views"], config["angle_range"], streams["views"])
-    R = views.rotations(angles)
+    if config["view_layout"] == "sphere":
+        R = views.sphere_rotations(config["views"], streams["views"])
+    else:
+        R = views.rotations(views.draw_angles(config["views"], config["angle_range"], streams["views"]))
     alpha = _visibility(config, mesh, points, R, streams["visibility"])
-    return Scene(mesh=mesh, points=points, angles=angles, rotations=R, visible=alpha)
+    m = config["visibility.min_views"]
+    if m:
+        keep = alpha.sum(axis=0) >= m
+        if keep.sum() < 4:
+            raise MpeError(f"visibility.min_views={m}: only {int(keep.sum())} of {len(points)} "
+                           "points are seen that often; nothing to reconstruct")
+        points, alpha = points[keep], alpha[:, keep]
+    return Scene(mesh=mesh, points=points, rotations=R, visible=alpha)
 
 
 def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations, dict]:

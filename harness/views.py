@@ -1,8 +1,12 @@
-"""Views: the paper's Eq. 9 rotations with angles drawn from binned sub-ranges."""
+"""Views: the paper's Eq. 9 rotations with angles drawn from binned sub-ranges,
+or directions spread evenly over the sphere."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
+
+GOLDEN_ANGLE = np.pi * (3.0 - np.sqrt(5.0))
 
 
 def rotation(alpha: float, beta: float, gamma: float) -> np.ndarray:
@@ -52,3 +56,29 @@ def rotations(angles_deg: np.ndarray) -> np.ndarray:
 def projections(R: np.ndarray) -> np.ndarray:
     """Orthographic projections P^k: the first two rows of each R^k."""
     return R[:, :2, :].copy()
+
+
+def sphere_rotations(n_views: int, rng: np.random.Generator) -> np.ndarray:
+    """``(K, 3, 3)`` rotations whose cameras look from K nearly equidistant directions.
+
+    The directions are a Fibonacci lattice on the sphere (the paper's
+    "equidistant views" for its raytrace-count figure), turned as a whole by a
+    uniformly random rotation, each camera with a random roll. Row 2 of R^k is
+    minus the direction towards camera k, as in :func:`harness.visibility.raytrace`.
+    """
+    k = np.arange(n_views)
+    z = 1.0 - (2.0 * k + 1.0) / n_views
+    r = np.sqrt(1.0 - z ** 2)
+    towards = np.column_stack([r * np.cos(k * GOLDEN_ANGLE), r * np.sin(k * GOLDEN_ANGLE), z])
+    towards = Rotation.random(random_state=rng).apply(towards)
+    out = np.empty((n_views, 3, 3))
+    for i, d in enumerate(towards):
+        helper = np.eye(3)[np.argmin(np.abs(d))]  # any axis not parallel to d
+        u = np.cross(d, helper)
+        u /= np.linalg.norm(u)
+        v = np.cross(-d, u)
+        roll = rng.uniform(0.0, 2.0 * np.pi)
+        first = np.cos(roll) * u + np.sin(roll) * v
+        second = np.cross(-d, first)
+        out[i] = np.stack([first, second, -d])
+    return out

@@ -12,7 +12,17 @@ def test_defaults_are_complete_and_documented():
     flat = cfg.flat()
     assert flat["shape"] == "chair" and flat["points"] == 512 and flat["views"] == 4
     assert flat["solver.name"] == "sgd" and flat["solver.max_iter"] == 300
-    assert cfg.nested()["visibility"] == {"mode": "exact", "k": 3, "count": None}
+    assert cfg.nested()["visibility"] == {"mode": "exact", "k": 3, "count": None, "min_views": 0}
+
+
+def test_keys_added_later_leave_earlier_hashes_alone():
+    base = make_config({"points": 256})
+    explicit = make_config({"points": 256, "view_layout": "band", "visibility.min_views": 0})
+    assert explicit.hash() == base.hash()  # cached runs from before the keys existed still count
+    assert make_config({"points": 256, "view_layout": "sphere"}).hash() != base.hash()
+    assert make_config({"points": 256, "visibility.min_views": 2}).hash() != base.hash()
+    with pytest.raises(MpeError, match="visibility.min_views: must be between 0 and views=4"):
+        make_config({"visibility.min_views": 5})
 
 
 def test_overrides_parse_as_yaml_scalars():

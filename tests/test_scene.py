@@ -42,3 +42,15 @@ def test_raytraced_views_record_counts():
     scene = build_scene(config, seed_streams(0))
     counts = scene.visible_per_view
     assert len(counts) == 4 and all(0 < c < 400 for c in counts)
+
+
+def test_min_views_keeps_exactly_the_points_seen_that_often():
+    common = {"shape": "chair", "points": 600, "views": 5, "visibility.mode": "raytrace",
+              "view_layout": "sphere"}
+    everything = build_scene(make_config(common))
+    seen = everything.visible.sum(axis=0)
+    for m in (1, 3):
+        subset = build_scene(make_config({**common, "visibility.min_views": m}))
+        assert np.array_equal(subset.points, everything.points[seen >= m])
+        assert subset.visible.sum(axis=0).min() >= m
+    assert len(build_scene(make_config({**common, "visibility.min_views": 3})).points) < 600

@@ -41,3 +41,15 @@ def test_bins_follow_the_paper():
     w6 = 360 / 6
     assert np.allclose(angle_bins(5, 360), [[0, w6], [w6, 2 * w6], [2 * w6, 3 * w6],
                                             [0, -w6], [-w6, -2 * w6]])
+
+
+def test_sphere_layout_spreads_cameras_evenly(rng):
+    from harness.views import sphere_rotations
+
+    R = sphere_rotations(5, rng)
+    assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    towards = -R[:, 2]
+    cosines = towards @ towards.T
+    nearest = np.degrees(np.arccos(np.max(cosines - 2 * np.eye(5), axis=1)))
+    assert nearest.min() > 60  # no two of 5 cameras nearly coincide (a band draw can give 0)
