@@ -96,7 +96,7 @@ def _dry_run(sweeps) -> int:
         dropped = f", {sweep.collapsed} duplicate grid points dropped" if sweep.collapsed else ""
         print(f"{sweep.name} ({sweep.path}): {len(sweep.runs)} runs{dropped}")
         flats = [(c.hash(), c.flat()) for c in sweep.runs]
-        table = pd.DataFrame([{"hash": h, **{k: flat[k] for k in sweep.varying}}
+        table = pd.DataFrame([{"hash": h, **{k: flat.get(k) for k in sweep.varying}}
                               for h, flat in flats])
         print(table.to_string(index=False))
     print(f"{sum(len(s.runs) for s in sweeps)} runs in all")
