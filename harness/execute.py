@@ -66,6 +66,7 @@ def run(config: RunConfig) -> RunResult:
                                            streams["metrics"])
     scores.update(stress=float(recon.stress), iterations=int(recon.iterations),
                   runtime_s=float(recon.runtime_s), points_kept=len(scene.points))
+    scores.update({f"seen_ge_{m}": n for m, n in enumerate(scene.seen_at_least, start=1)})
     if "unplaced" in recon.info:
         scores["unplaced"] = len(recon.info["unplaced"])
     return RunResult(config=config, metrics=scores, scene=scene, reconstruction=recon,

@@ -40,6 +40,9 @@ class Scene:
     points: np.ndarray  # (N, 3)
     rotations: np.ndarray  # (K, 3, 3)
     visible: np.ndarray  # (K, N) bool: the visibility vectors
+    # seen_at_least[m - 1]: how many sampled points are visible in >= m views,
+    # counted before visibility.min_views drops any
+    seen_at_least: tuple[int, ...] = ()
 
     @property
     def projections(self) -> np.ndarray:
@@ -77,14 +80,16 @@ def build_scene(config: RunConfig, streams=None) -> Scene:
     else:
         R = views.rotations(views.draw_angles(config["views"], config["angle_range"], streams["views"]))
     alpha = _visibility(config, mesh, points, R, streams["visibility"])
+    seen = alpha.sum(axis=0)
+    seen_at_least = tuple(int(np.sum(seen >= m)) for m in range(1, len(R) + 1))
     m = config["visibility.min_views"]
     if m:
-        keep = alpha.sum(axis=0) >= m
+        keep = seen >= m
         if keep.sum() < 4:
             raise MpeError(f"visibility.min_views={m}: only {int(keep.sum())} of {len(points)} "
                            "points are seen that often; nothing to reconstruct")
         points, alpha = points[keep], alpha[:, keep]
-    return Scene(mesh=mesh, points=points, rotations=R, visible=alpha)
+    return Scene(mesh=mesh, points=points, rotations=R, visible=alpha, seen_at_least=seen_at_least)
 
 
 def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations, dict]:
