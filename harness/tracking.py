@@ -259,7 +259,8 @@ class Tracker:
             order = frame.assign(_rank=rank).sort_values(["_rank", "start_time"]).index
             frame = frame.loc[order].drop_duplicates("config_hash", keep="last").sort_index()
         for column in frame.columns:  # MLflow keeps params as text
-            if frame[column].dtype == object and column not in ("run_id", "config_hash"):
+            if not pd.api.types.is_numeric_dtype(frame[column]) \
+                    and column not in ("run_id", "config_hash", "start_time"):
                 with contextlib.suppress(ValueError, TypeError):
                     frame[column] = pd.to_numeric(frame[column])
         return frame

@@ -1,0 +1,256 @@
+"""The paper's claims as data, each checked against tracked runs.
+
+A :class:`Claim` names the paper's words, where they stand, the experiment
+(sweep) whose runs test it and the test itself: a check function with its
+thresholds bound as plain parameters. Checking a claim on a DataFrame of runs
+gives a :class:`Verdict` (holds / does not hold / not enough runs) with the
+numbers behind it, once for the paper's 3DMPE (``sgd``) and once for our
+``refine`` where the claim applies to it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import partial
+from typing import Callable
+
+import numpy as np
+import pandas as pd
+
+from .load import CD
+
+HOLDS, FAILS, NOT_ENOUGH, NOT_APPLICABLE = "holds", "does not hold", "not enough runs", "n/a"
+ACCEPTABLE_CD = 0.2  # the paper's acceptability line (Section "Robustness of the Algorithm")
+
+
+@dataclass(frozen=True)
+class Verdict:
+    verdict: str
+    numbers: str = ""
+    runs: int = 0
+
+
+@dataclass(frozen=True)
+class Claim:
+    id: str
+    statement: str  # the paper's claim, in its words or close to them
+    source: str  # where the paper makes it
+    experiment: str  # the MLflow experiment (sweep name) whose runs test it
+    test: str  # the criterion, in words
+    check: Callable[[pd.DataFrame, str], Verdict]
+    solvers: tuple[str, ...] = field(default=("sgd", "refine"))
+
+
+def _finished(frame: pd.DataFrame, solver: str | None) -> pd.DataFrame:
+    if frame.empty or "status" not in frame:
+        return frame.iloc[0:0]
+    rows = frame[frame["status"] == "FINISHED"]
+    return rows[rows["solver.name"] == solver] if solver else rows
+
+
+def _fmt(value: float) -> str:
+    return f"{value:.3g}"
+
+
+def smart_beats_random(frame: pd.DataFrame, solver: str, factor: float) -> Verdict:
+    """Mean CD from the random start over mean CD from the smart start, per shape
+    and setting; holds when their geometric mean is at least ``factor``."""
+    rows = _finished(frame, solver)
+    if rows.empty or not {"random", "smart"} <= set(rows["init"]):
+        return Verdict(NOT_ENOUGH, "needs runs from both starts", len(rows))
+    means = rows.groupby(["shape", "projections", "init"])[CD].mean().unstack("init").dropna()
+    if means.empty:
+        return Verdict(NOT_ENOUGH, "no shape has runs from both starts", len(rows))
+    ratio = means["random"] / np.maximum(means["smart"], 1e-300)
+    gmean = float(np.exp(np.mean(np.log(ratio))))
+    numbers = (f"random/smart CD: geometric mean {_fmt(gmean)}× over {len(ratio)} shape×setting "
+               f"groups (min {_fmt(ratio.min())}×, max {_fmt(ratio.max())}×)")
+    return Verdict(HOLDS if gmean >= factor else FAILS, numbers, len(rows))
+
+
+def good_where(frame: pd.DataFrame, solver: str, column: str, keep: Callable[[pd.Series], pd.Series],
+               min_levels: int = 1, threshold: float = ACCEPTABLE_CD) -> Verdict:
+    """The median CD of every (``column`` value, setting) group that ``keep``
+    selects is below ``threshold``; needs ``min_levels`` values of ``column``."""
+    rows = _finished(frame, solver)
+    if rows.empty:
+        return Verdict(NOT_ENOUGH, "no finished runs", 0)
+    rows = rows[keep(rows[column])]
+    levels = sorted(rows[column].unique())
+    if len(levels) < min_levels:
+        return Verdict(NOT_ENOUGH, f"needs {min_levels} values of {column}, has {len(levels)}", len(rows))
+    medians = rows.groupby([column, "projections"])[CD].median()
+    worst = medians.idxmax()
+    numbers = (f"median CD per {column} and setting: worst {_fmt(medians.max())} at {column}="
+               f"{worst[0]:g} ({worst[1]}), over {len(medians)} groups; line at {threshold:g}")
+    return Verdict(HOLDS if medians.max() <= threshold else FAILS, numbers, len(rows))
+
+
+def degrades_less(frame: pd.DataFrame, solver: str, factor: float, min_fraction: float = 0.5) -> Verdict:
+    """Per noise amplitude p: the baseline's CD rise from q = 0 to the largest q
+    is at least ``factor`` times the solver's."""
+    rows = _finished(frame, None)
+    if rows.empty:
+        return Verdict(NOT_ENOUGH, "no finished runs", 0)
+    q_max = rows["noise.fraction"].max()
+    if q_max < min_fraction or 0.0 not in set(rows["noise.fraction"]):
+        return Verdict(NOT_ENOUGH, f"needs q = 0 and a q >= {min_fraction}", len(rows))
+    medians = rows[rows["noise.fraction"].isin([0.0, q_max])].groupby(
+        ["noise.amplitude", "solver.name", "noise.fraction"])[CD].median()
+    parts, ok, used = [], True, 0
+    for p in sorted(rows["noise.amplitude"].unique()):
+        try:
+            rise = {s: medians[(p, s, q_max)] - medians[(p, s, 0.0)] for s in ("baseline", solver)}
+        except KeyError:
+            return Verdict(NOT_ENOUGH, f"p={p:g}: needs {solver} and baseline at q=0 and q={q_max:g}",
+                           len(rows))
+        ratio = rise["baseline"] / max(rise[solver], 1e-12)
+        ok &= ratio >= factor
+        used += 1
+        parts.append(f"p={p:g}: CD rise baseline {_fmt(rise['baseline'])}, {solver} "
+                     f"{_fmt(rise[solver])} ({_fmt(ratio)}×)")
+    counted = rows[rows["solver.name"].isin(["baseline", solver])]
+    return Verdict(HOLDS if ok else FAILS, f"q 0→{q_max:g}: " + "; ".join(parts), len(counted))
+
+
+def linear_runtime(frame: pd.DataFrame, solver: str, setting: str = "variable",
+                   min_r2: float = 0.9, min_levels: int = 4) -> Verdict:
+    """Median runtime against K is fitted by a line with positive slope and R² >= ``min_r2``."""
+    rows = _finished(frame, solver)
+    rows = rows[rows["projections"] == setting] if not rows.empty else rows
+    medians = rows.groupby("views")["runtime_s"].median() if not rows.empty else pd.Series(dtype=float)
+    if len(medians) < min_levels:
+        return Verdict(NOT_ENOUGH, f"needs {min_levels} values of K, has {len(medians)}", len(rows))
+    k, t = medians.index.to_numpy(float), medians.to_numpy()
+    slope, intercept = np.polyfit(k, t, 1)
+    residual = t - (slope * k + intercept)
+    r2 = 1.0 - residual @ residual / max(((t - t.mean()) ** 2).sum(), 1e-300)
+    numbers = (f"{setting}: median runtime {_fmt(t[0])} s at K={k[0]:g} to {_fmt(t[-1])} s at "
+               f"K={k[-1]:g}; line slope {_fmt(slope)} s per view, R² {r2:.2f}")
+    return Verdict(HOLDS if slope > 0 and r2 >= min_r2 else FAILS, numbers, len(rows))
+
+
+def flat_runtime(frame: pd.DataFrame, solver: str, setting: str = "fixed", max_ratio: float = 2.0,
+                 min_levels: int = 3) -> Verdict:
+    """The largest median runtime over K is at most ``max_ratio`` times the smallest."""
+    rows = _finished(frame, solver)
+    rows = rows[rows["projections"] == setting] if not rows.empty else rows
+    medians = rows.groupby("views")["runtime_s"].median() if not rows.empty else pd.Series(dtype=float)
+    if len(medians) < min_levels:
+        return Verdict(NOT_ENOUGH, f"needs {min_levels} values of K, has {len(medians)}", len(rows))
+    ratio = medians.max() / max(medians.min(), 1e-12)
+    numbers = (f"{setting}: median runtime from {_fmt(medians.min())} s to {_fmt(medians.max())} s "
+               f"over K={medians.index.min():g}..{medians.index.max():g} ({_fmt(ratio)}×)")
+    return Verdict(HOLDS if ratio <= max_ratio else FAILS, numbers, len(rows))
+
+
+def most_in_three_views(frame: pd.DataFrame, solver: str | None, m: int = 3,
+                        min_share: float = 0.5) -> Verdict:
+    """In every shape, at least ``min_share`` of the sampled points are visible in >= m views."""
+    rows = _finished(frame, None)
+    column = f"seen_ge_{m}"
+    if rows.empty or column not in rows:
+        return Verdict(NOT_ENOUGH, "no finished runs", 0)
+    share = rows.groupby("shape").apply(lambda g: (g[column] / g["points"]).mean(), include_groups=False)
+    numbers = ", ".join(f"{shape} {100 * v:.0f}%" for shape, v in share.items())
+    return Verdict(HOLDS if share.min() >= min_share else FAILS,
+                   f"share of points in >= {m} views: {numbers}", len(rows))
+
+
+def faster_and_as_exact(frame: pd.DataFrame, solver: str, than: str = "sgd",
+                        min_speedup: float = 5.0) -> Verdict:
+    """Per N and setting: ``solver`` is ``min_speedup``× faster (median runtime)
+    and its median CD is no worse than ``than``'s."""
+    rows = _finished(frame, None)
+    if rows.empty or not {solver, than} <= set(rows["solver.name"]):
+        return Verdict(NOT_ENOUGH, f"needs runs of {solver} and {than}", len(rows))
+    medians = rows.groupby(["points", "projections", "solver.name"])[["runtime_s", CD]].median()
+    table = medians.unstack("solver.name").dropna()
+    speedup = table[("runtime_s", than)] / table[("runtime_s", solver)].clip(lower=1e-9)
+    better = (table[(CD, solver)] <= table[(CD, than)] * (1 + 1e-9)).mean()
+    numbers = (f"{than}/{solver} runtime: {_fmt(speedup.min())}× to {_fmt(speedup.max())}× over "
+               f"{len(table)} groups; {solver}'s median CD no worse in {100 * better:.0f}% of them")
+    ok = speedup.min() >= min_speedup and better == 1.0
+    return Verdict(HOLDS if ok else FAILS, numbers, len(rows[rows["solver.name"].isin([solver, than])]))
+
+
+CLAIMS: tuple[Claim, ...] = (
+    Claim("smart-init", "Smart initialization outperforms random initialization by an order of "
+          "magnitude (CD).", "Sec. 'The Effect of Smart Initialization', Fig. smart_init_experiment",
+          "paper-smart-init", "geometric mean of random/smart mean CD over shapes and settings >= 5",
+          partial(smart_beats_random, factor=5.0), solvers=("sgd",)),
+    Claim("three-views", "3DMPE reconstructs the point cloud properly if each point is visible from "
+          "at least 3 projections.", "Sec. 'Scalability', Fig. visible_metrics", "paper-visibility",
+          "median CD <= 0.2 for every k >= 3 and both settings",
+          partial(good_where, column="visibility.k", keep=lambda k: k >= 3)),
+    Claim("angle-90", "For θr >= 90°, 3DMPE can reconstruct the whole object.",
+          "Sec. 'Analysis of Angle Constraints', Fig. angle_noise", "paper-angle-band",
+          "median CD <= 0.2 for every θr >= 90° and both settings",
+          partial(good_where, column="angle_range", keep=lambda a: a >= 90)),
+    Claim("four-five-views", "Typically 4 or 5 projections suffice for high-quality reconstruction.",
+          "Sec. 'Scalability', Fig. viewpoints_metrics", "paper-views",
+          "median CD <= 0.2 at K = 4 and K = 5 (each point in K-1 views), both settings",
+          partial(good_where, column="views", keep=lambda k: k.isin([4, 5]))),
+    Claim("points-independent", "No significant effect of the number of points on accuracy.",
+          "Sec. 'Scalability', Fig. points_metrics", "paper-points",
+          "median CD <= 0.2 at every N (>= 3 values of N), both settings",
+          partial(good_where, column="points", keep=lambda n: n > 0, min_levels=3)),
+    Claim("distance-noise", "Under distance noise the baseline's accuracy drops much more than "
+          "3DMPE's.", "Sec. 'Robustness', Fig. gaussian_noise", "paper-noise-distance",
+          "for every p, the baseline's median CD rise from q=0 to the largest q (>= 0.5) is >= 2× "
+          "the method's", partial(degrades_less, factor=2.0)),
+    Claim("correspondence-noise", "3DMPE is robust to erroneous correspondences; the baseline "
+          "degrades more.", "Sec. 'Robustness', Fig. perm_noise", "paper-noise-correspondence",
+          "for every p, the baseline's median CD rise from q=0 to the largest q (>= 0.5) is >= 2× "
+          "the method's", partial(degrades_less, factor=2.0)),
+    Claim("runtime-linear-k", "With variable projections, runtime increases linearly in the number "
+          "of viewpoints.", "Sec. 'Scalability', Fig. viewpoints_var_Run_Time", "paper-views",
+          "median runtime against K (variable): line with positive slope and R² >= 0.9, >= 4 values of K",
+          partial(linear_runtime, setting="variable")),
+    Claim("runtime-flat-k", "With fixed projections, the effect of more projections on runtime is "
+          "negligible.", "Sec. 'Scalability', Fig. viewpoints_fixed_Run_Time", "paper-views",
+          "largest median runtime over K (fixed) <= 2× the smallest",
+          partial(flat_runtime, setting="fixed")),
+    Claim("raytrace-three-views", "With only 5 projections, most points are present in at least 3 "
+          "viewpoints.", "Sec. 'Scalability', Fig. raytrace_visible", "paper-raytrace-counts",
+          "in every shape >= 50% of the sampled points are visible in >= 3 of the 5 views",
+          most_in_three_views, solvers=("any",)),
+    Claim("ours-faster", "(ours) refine reaches at least 3DMPE's accuracy, at least 5× faster.",
+          "mpe3d, not the paper", "paper-points",
+          "per N and setting: sgd/refine median runtime >= 5× and refine's median CD <= sgd's",
+          faster_and_as_exact, solvers=("refine",)),
+)
+
+VERDICT_COLUMNS = {"sgd": "3DMPE (paper)", "refine": "ours (refine)"}
+
+
+def check(claim: Claim, frame: pd.DataFrame) -> dict[str, Verdict]:
+    """The claim's verdict for each solver column (n/a where it does not apply)."""
+    out = {}
+    for solver, column in VERDICT_COLUMNS.items():
+        if "any" in claim.solvers and solver == "sgd":
+            out[column] = claim.check(frame, None)
+        elif solver in claim.solvers:
+            out[column] = claim.check(frame, solver)
+        else:
+            out[column] = Verdict(NOT_APPLICABLE)
+    return out
+
+
+def claims_table(frames: dict[str, pd.DataFrame], claims=CLAIMS) -> pd.DataFrame:
+    """One row per claim: the claim, where, the test, and each verdict with its numbers.
+
+    ``frames`` maps experiment names to their runs; a missing experiment
+    counts as no runs.
+    """
+    rows = []
+    for claim in claims:
+        frame = frames.get(claim.experiment, pd.DataFrame())
+        row = {"claim": claim.statement, "paper": claim.source, "experiment": claim.experiment,
+               "test": claim.test}
+        for column, verdict in check(claim, frame).items():
+            row[column] = verdict.verdict
+            row[f"{column}: numbers"] = verdict.numbers
+            row[f"{column}: runs"] = verdict.runs
+        rows.append(row)
+    return pd.DataFrame(rows)

@@ -1,0 +1,124 @@
+"""A report folder: tables (Markdown + LaTeX), figures (PNG + PDF), and an index.
+
+Each table and figure is written as files the moment it is added; the index
+(``index.md``, ``index.html``) lists them in order, each under the sweep that
+made it.
+"""
+
+from __future__ import annotations
+
+import html
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pandas as pd
+
+
+def _markdown(frame: pd.DataFrame) -> str:
+    return frame.to_markdown(index=False, floatfmt=".3g", missingval="–")
+
+
+def _latex(frame: pd.DataFrame, caption: str, label: str) -> str:
+    """A booktabs table, shaped like the paper's."""
+    numeric = frame.select_dtypes("number").columns
+    style = frame.style.hide(axis="index").format("{:.3g}", subset=list(numeric), na_rep="--")
+    return style.to_latex(hrules=True, caption=caption, label=f"tab:{label}",
+                          column_format="l" * (len(frame.columns) - len(numeric)) + "r" * len(numeric),
+                          position_float="centering")
+
+
+@dataclass
+class Report:
+    """Writes files into ``out`` and remembers what to show in the index."""
+
+    out: Path
+    title: str
+    blocks: list[tuple[str, object]] = field(default_factory=list)
+    files: list[Path] = field(default_factory=list)
+
+    def __post_init__(self):
+        self.out = Path(self.out)
+        for sub in ("tables", "figures"):
+            (self.out / sub).mkdir(parents=True, exist_ok=True)
+
+    def heading(self, text: str, level: int = 2) -> None:
+        self.blocks.append(("heading", (level, text)))
+
+    def text(self, text: str) -> None:
+        self.blocks.append(("text", text))
+
+    def table(self, frame: pd.DataFrame, name: str, caption: str, show: bool = True) -> None:
+        """``tables/NAME.md`` and ``tables/NAME.tex``, and the table in the index."""
+        md = self.out / "tables" / f"{name}.md"
+        tex = self.out / "tables" / f"{name}.tex"
+        md.write_text(f"{caption}\n\n{_markdown(frame)}\n")
+        tex.write_text(_latex(frame, caption, name))
+        self.files += [md, tex]
+        self.blocks.append(("table", (frame, name, caption, show)))
+
+    def figure(self, fig, name: str, caption: str) -> None:
+        """``figures/NAME.png`` and ``figures/NAME.pdf``, and the PNG in the index."""
+        import matplotlib.pyplot as plt
+
+        png = self.out / "figures" / f"{name}.png"
+        pdf = self.out / "figures" / f"{name}.pdf"
+        fig.savefig(png, dpi=120, bbox_inches="tight")
+        fig.savefig(pdf, bbox_inches="tight")
+        plt.close(fig)
+        self.files += [png, pdf]
+        self.blocks.append(("figure", (name, caption)))
+
+    def write_index(self) -> tuple[Path, Path]:
+        md, page = self.out / "index.md", self.out / "index.html"
+        md.write_text(self._markdown())
+        page.write_text(self._html())
+        return md, page
+
+    def _markdown(self) -> str:
+        parts = [f"# {self.title}"]
+        for kind, value in self.blocks:
+            if kind == "heading":
+                level, text = value
+                parts.append(f"{'#' * level} {text}")
+            elif kind == "text":
+                parts.append(value)
+            elif kind == "table":
+                frame, name, caption, show = value
+                links = f"[md](tables/{name}.md) · [tex](tables/{name}.tex)"
+                parts.append(f"**{caption}** ({links})" + (f"\n\n{_markdown(frame)}" if show else ""))
+            else:
+                name, caption = value
+                parts.append(f"![{caption}](figures/{name}.png)\n\n*{caption}* "
+                             f"([png](figures/{name}.png) · [pdf](figures/{name}.pdf))")
+        return "\n\n".join(parts) + "\n"
+
+    def _html(self) -> str:
+        body = [f"<h1>{html.escape(self.title)}</h1>"]
+        for kind, value in self.blocks:
+            if kind == "heading":
+                level, text = value
+                body.append(f"<h{level}>{html.escape(text)}</h{level}>")
+            elif kind == "text":
+                body.append(f"<p>{html.escape(value)}</p>")
+            elif kind == "table":
+                frame, name, caption, show = value
+                links = (f'<a href="tables/{name}.md">md</a> · <a href="tables/{name}.tex">tex</a>')
+                table = frame.to_html(index=False, na_rep="–", float_format=lambda v: f"{v:.3g}",
+                                      border=0) if show else ""
+                body.append(f"<figure class='table'><figcaption>{html.escape(caption)} ({links})"
+                            f"</figcaption>{table}</figure>")
+            else:
+                name, caption = value
+                body.append(f"<figure><img src='figures/{name}.png' alt='{html.escape(name)}'>"
+                            f"<figcaption>{html.escape(caption)} (<a href='figures/{name}.pdf'>pdf"
+                            f"</a>)</figcaption></figure>")
+        return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
+                f"<title>{html.escape(self.title)}</title><style>{_CSS}</style></head>"
+                f"<body>{''.join(body)}</body></html>\n")
+
+
+_CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;line-height:1.4}"
+        "table{border-collapse:collapse;font-size:0.85em;margin:0.5em 0}"
+        "th,td{padding:2px 8px;border-bottom:1px solid #ddd;text-align:right}"
+        "th:first-child,td:first-child{text-align:left}"
+        "img{max-width:100%}figure{margin:1em 0}figcaption{font-size:0.9em;color:#333}")

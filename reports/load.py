@@ -1,0 +1,59 @@
+"""Runs from MLflow as a pandas DataFrame, and the paper's published numbers."""
+
+from __future__ import annotations
+
+from importlib.resources import files
+
+import pandas as pd
+
+# How each solver is named in tables and figures: the paper's method is
+# "3DMPE (paper)", our exact solver is "ours (refine)".
+METHOD_LABELS = {"baseline": "baseline (MDS)", "sgd": "3DMPE (paper)", "refine": "ours (refine)",
+                 "factorize": "ours (factorize)"}
+SETTING_LABELS = {"fixed": "F", "variable": "V"}
+
+# The CD and EMD scale of the paper's tables: 100 x mean (unsquared) distance,
+# as the authors' public code computes them (../shared/reference/README.md).
+CD, EMD, ROA = "cd_x100", "emd_x100", "roa"
+METRIC_LABELS = {CD: "CD (×100, mean NN distance)", EMD: "EMD (×100, mean distance)",
+                 ROA: "ROA (RMS after rigid alignment)", "runtime_s": "runtime (s)"}
+
+
+def method_label(solver: str) -> str:
+    return METHOD_LABELS.get(solver, solver)
+
+
+def runs(tracker, experiment: str, hashes=None) -> pd.DataFrame:
+    """The latest run of every config of ``experiment``, with a ``method`` column.
+
+    ``hashes`` (config hashes, e.g. of one sweep at one scale) keeps only those
+    configs; a config that was never run is simply absent.
+    """
+    frame = tracker.runs_frame(experiment)
+    if frame.empty:
+        return frame
+    if hashes is not None:
+        frame = frame[frame["config_hash"].isin(set(hashes))]
+    frame = frame.copy()
+    frame["method"] = frame["solver.name"].map(method_label)
+    return frame.reset_index(drop=True)
+
+
+def finished(frame: pd.DataFrame) -> pd.DataFrame:
+    """Only the runs that produced metrics."""
+    if frame.empty or "status" not in frame:
+        return frame
+    return frame[frame["status"] == "FINISHED"]
+
+
+def published(table: str) -> pd.DataFrame:
+    """The paper's published numbers of ``table`` (allmetrics or allmetricspix3d).
+
+    Columns: table, dataset, category, metric (CD or EMD), method, value. The
+    learning-based rows (PSGN, 3D-LMNet) are Mandikal et al. (2018) as the
+    paper quotes them; none of them were measured on our meshes.
+    """
+    path = files("reports") / "data" / "paper_tables.csv"
+    with path.open() as handle:
+        data = pd.read_csv(handle)
+    return data[data["table"] == table].reset_index(drop=True)

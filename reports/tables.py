@@ -1,0 +1,61 @@
+"""Tables shaped like the paper's: ``DataFrame -> DataFrame`` ready to write."""
+
+from __future__ import annotations
+
+import pandas as pd
+
+from .load import CD, EMD, METRIC_LABELS, SETTING_LABELS
+
+PUBLISHED_NOTE = "published, ShapeNet"
+# The paper's column order: learning-based methods, then its baseline and 3DMPE.
+PUBLISHED_ORDER = ["PSGN", "3D-LMNet", "Baseline[3D-LMNet paper]", "Our BL", "3DMPE(F)", "3DMPE(V)"]
+
+
+def summary(frame: pd.DataFrame, by: list[str], metrics: list[str]) -> pd.DataFrame:
+    """Mean and standard deviation of ``metrics`` per group of ``by``, and the run count."""
+    grouped = frame.groupby(by, sort=True)
+    out = grouped[metrics].agg(["mean", "std"])
+    out.columns = [f"{METRIC_LABELS.get(m, m).split(' (')[0]} {stat}" for m, stat in out.columns]
+    out.insert(0, "runs", grouped.size())
+    return out.reset_index()
+
+
+def category_of(shape: str) -> str:
+    """The paper category a bundled shape stands in for (guitar -> rifle)."""
+    from harness.shapes import bundled_manifest
+
+    entry = bundled_manifest().get(shape)
+    return entry["paper_category"] if entry else shape
+
+
+def allmetrics(frame: pd.DataFrame, published: pd.DataFrame,
+               published_note: str = PUBLISHED_NOTE) -> pd.DataFrame:
+    """Paper Table allmetrics: a row per category and metric, the published methods
+    first (labelled "published, ShapeNet"), then what our runs measured.
+
+    CD and EMD are on the scale of the authors' code (100 x mean distance).
+    """
+    measured = frame.assign(category=frame["shape"].map(category_of),
+                            column=frame["method"] + " " + frame["projections"].map(SETTING_LABELS))
+    baseline = measured["solver.name"] == "baseline"  # blind to the projections: one column
+    measured.loc[baseline, "column"] = measured.loc[baseline, "method"]
+    long = measured.melt(id_vars=["category", "column"], value_vars=[CD, EMD],
+                         var_name="metric", value_name="value")
+    long["metric"] = long["metric"].map({CD: "CD", EMD: "EMD"})
+    ours = long.pivot_table(index=["category", "metric"], columns="column", values="value",
+                            aggfunc="mean")
+    ours.loc[("mean", "CD"), :] = ours.xs("CD", level="metric").mean()
+    ours.loc[("mean", "EMD"), :] = ours.xs("EMD", level="metric").mean()
+    paper = published.pivot_table(index=["category", "metric"], columns="method", values="value")
+    paper = paper[[m for m in PUBLISHED_ORDER if m in paper] + [m for m in paper if m not in PUBLISHED_ORDER]]
+    paper.columns = [f"{m} ({published_note})" for m in paper.columns]
+    table = ours.join(paper, how="left")
+    order = list(paper.columns) + sorted(ours.columns, key=_column_order)
+    categories = [c for c in ours.index.get_level_values(0).unique() if c != "mean"] + ["mean"]
+    table = table.reindex(pd.MultiIndex.from_product([categories, ["CD", "EMD"]]))[order]
+    return table.reset_index(names=["category", "metric"])
+
+
+def _column_order(column: str) -> tuple:
+    rank = {"baseline": 0, "3DMPE": 1, "ours": 2}
+    return rank.get(column.split()[0], 3), column
