@@ -25,6 +25,9 @@ _HUBER_K = 1.345
 # Stress / sum of squared distances below which the start is exact: RMS relative
 # residuals of 1e-9, the precision of the per-view Lanczos MDS.
 _EXACT = 1e-18
+# Above this relative stress after descent the views are noisy, and refine also
+# descends from the paper's smart (MDS) start, keeping the lower objective.
+_NOISY = 1e-10
 
 
 def _skew(w: np.ndarray) -> np.ndarray:
@@ -93,9 +96,12 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
     tol : float, default 1e-12
         Relative decrease of the objective below which L-BFGS stops.
 
-    ``init`` is ignored (the start is ``factorize``'s exact algebraic
-    solution). The result is never worse than the start: if the minimiser
-    ends higher, the start is returned.
+    ``init`` is ignored: the start is ``factorize``'s exact algebraic
+    solution. When the descent from it ends at a relative stress above 1e-10
+    (noisy views, where the algebraic start can land in a poor basin), refine
+    also descends from the paper's smart start and keeps the lower objective.
+    The result is never worse than the start: if the minimiser ends higher,
+    the start is returned.
     """
     if loss not in LOSSES:
         raise MpeError(f"solver.loss: '{loss}' is not one of {', '.join(LOSSES)}")
@@ -108,19 +114,21 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
         radius = float(np.sqrt(np.mean((X0 - X0.mean(axis=0)) ** 2))) or 1.0
         scale = max(_HUBER_K * spread, 1e-12 * radius)  # noise-free: residuals are ~0
     stress = Stress(observations, loss, scale)
-    R0 = _rotations(P0)
-    f, unpack = _objective(stress, X0.shape, R0, P0 if observations.fixed else None)
-    theta0 = X0.ravel() if observations.fixed else np.concatenate([X0.ravel(), np.zeros(3 * len(P0))])
-    f0 = start.stress if loss == "l2" else f(theta0)[0]  # the start's stress is known
-    history = [f0]
-    if f0 <= _EXACT * _sum_squared_distances(observations):  # residuals at rounding level
-        theta, value, iterations = theta0, f0, 0
-        termination = "start already exact (relative stress below 1e-18)"
-    else:
-        theta, value, iterations, termination = _minimise(f, theta0, history, max_iter, tol)
-    X, P, _ = unpack(theta)
-    P = np.array(P)
-    if theta is theta0:
+    f0 = start.stress if loss == "l2" else None  # the start's stress is known
+    total = _sum_squared_distances(observations)
+    X, P, value, history, iterations, termination = _descend(observations, stress, X0, P0, f0,
+                                                             max_iter, tol, total)
+    used_start = "factorize"
+    if value > _NOISY * total:  # noisy views: the algebraic start may sit in a poor basin
+        from .sgd import initial_state
+
+        Xs, Ps = initial_state(observations, Stress(observations), "smart", rng, "smacof")
+        alt = _descend(observations, stress, Xs, Ps, None, max_iter, tol, total)
+        if alt[2] < value:
+            X, P, value, history, iterations, termination = alt
+            used_start = "smart (MDS)"
+    exact = iterations == 0 and used_start == "factorize" and value == f0
+    if exact and loss == "l2":
         paper_stress = start.stress
     else:
         paper_stress = value if loss == "l2" else Stress(observations).value(X, P)
@@ -128,10 +136,25 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
                           stress_history=np.array(history), iterations=iterations,
                           termination=termination,
                           info={"unplaced": start.info["unplaced"], "loss": loss,
-                                "loss_scale": scale, "objective": value,
+                                "loss_scale": scale, "objective": value, "start": used_start,
                                 "start_stress": start.stress})
 
 
+def _descend(observations: Observations, stress: Stress, X0: np.ndarray, P0: np.ndarray,
+             f0: float | None, max_iter: int, tol: float, total: float):
+    """L-BFGS from (X0, P0): the points, projections, objective, history, iterations, reason."""
+    R0 = _rotations(P0)
+    f, unpack = _objective(stress, X0.shape, R0, P0 if observations.fixed else None)
+    theta0 = X0.ravel() if observations.fixed else np.concatenate([X0.ravel(), np.zeros(3 * len(P0))])
+    f0 = f(theta0)[0] if f0 is None else f0
+    history = [f0]
+    if f0 <= _EXACT * total:  # residuals at rounding level
+        theta, value, iterations = theta0, f0, 0
+        termination = "start already exact (relative stress below 1e-18)"
+    else:
+        theta, value, iterations, termination = _minimise(f, theta0, history, max_iter, tol)
+    X, P, _ = unpack(theta)
+    return X, np.array(P), value, history, iterations, termination
 def _minimise(f, theta0: np.ndarray, history: list, max_iter: int, tol: float):
     """L-BFGS-B from theta0; the start back if it somehow ends higher."""
     def record(intermediate_result):  # scipy passes the OptimizeResult by this name
