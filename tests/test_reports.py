@@ -1,0 +1,137 @@
+"""Reports: a real tiny-scale reproduce-paper, its files, its numbers, and a browser."""
+import re
+import shutil
+
+import matplotlib.image as mpimg
+import numpy as np
+import pandas as pd
+import pytest
+
+from harness.tracking import Tracker
+from reports.load import published
+from sweeps import paper_sweeps
+
+from .helpers import SHARED, run_cli
+
+TABLES = ["claims", "allmetrics", "allmetrics_seen2", "allmetricspix3d", "allmetricspix3d_seen2",
+          "smart_init", "noise_distance", "noise_correspondence", "views", "points", "visibility",
+          "raytrace_visible", "angle_band"]
+FIGURES = ["smart_init", "noise_distance", "noise_correspondence", "views_runtime", "views_metrics",
+           "points_runtime", "points_metrics", "visibility", "raytrace_visible", "angle_band"]
+
+
+@pytest.fixture(scope="module")
+def tiny_report(tmp_path_factory):
+    """One real ``mpe3d reproduce-paper --scale tiny`` (about 130 small runs), then a rerun."""
+    folder = tmp_path_factory.mktemp("reproduce")
+    uri = f"sqlite:///{folder}/mlflow.db"
+    first = run_cli("reproduce-paper", "--scale", "tiny", "--jobs", "2", "--out", "report",
+                    "--tracking-uri", uri, "--quiet", cwd=folder)
+    assert first.returncode == 0, first.stderr
+    second = run_cli("reproduce-paper", "--scale", "tiny", "--out", "again", "--tracking-uri", uri,
+                     "--quiet", cwd=folder)
+    assert second.returncode == 0, second.stderr
+    return folder, uri, first, second
+
+
+def test_report_folder_holds_every_table_and_figure(tiny_report):
+    folder, _, first, _ = tiny_report
+    out = folder / "report"
+    for name in TABLES:
+        assert (out / "tables" / f"{name}.md").stat().st_size > 100, name
+        tex = (out / "tables" / f"{name}.tex").read_text()
+        assert "\\toprule" in tex and "\\bottomrule" in tex, name  # booktabs
+    for name in FIGURES:
+        assert (out / "figures" / f"{name}.pdf").read_bytes().startswith(b"%PDF"), name
+        image = mpimg.imread(out / "figures" / f"{name}.png")
+        assert image.shape[0] > 200 and image.shape[1] > 200, name
+        assert image[..., :3].std() > 0.05, f"{name}.png looks blank"
+    index = (out / "index.md").read_text()
+    page = (out / "index.html").read_text()
+    for name in FIGURES:
+        assert f"figures/{name}.png" in index and f"figures/{name}.png" in page
+    for name in TABLES:
+        assert f"tables/{name}.md" in index
+    assert re.search(r"Scale tiny; \d+ runs in 10 experiments: \d+ run now, 0 reused", index)
+    assert "wall time for the runs" in index
+    assert "wrote report/index.html" in first.stdout
+
+
+def test_tables_hold_the_runs_numbers(tiny_report):
+    folder, uri, _, _ = tiny_report
+    runs = Tracker(uri, create=False).runs_frame("paper-views")
+    runs = runs[runs["status"] == "FINISHED"]
+    table = (folder / "report" / "tables" / "views.md").read_text()
+    for (setting, k, solver), group in runs.groupby(["projections", "views", "solver.name"]):
+        mean = group["cd_x100"].mean()
+        assert f"{mean:.3g}" in table, (setting, k, solver, mean)
+    allmetrics = (folder / "report" / "tables" / "allmetrics.md").read_text()
+    paper = published("allmetrics")
+    chair_cd = paper[(paper.category == "chair") & (paper.metric == "CD") & (paper.method == "PSGN")]
+    assert f"{chair_cd.value.iloc[0]:.3g}" in allmetrics and "published, ShapeNet" in allmetrics
+
+
+def test_rerun_reuses_every_run(tiny_report):
+    folder, _, _, second = tiny_report
+    index = (folder / "again" / "index.md").read_text()
+    assert re.search(r"\d+ runs in 10 experiments: 0 run now, \d+ reused", index)
+    assert sorted(p.name for p in (folder / "again" / "figures").iterdir()) == \
+        sorted(p.name for p in (folder / "report" / "figures").iterdir())
+
+
+def test_report_commands_and_their_errors(tiny_report):
+    folder, uri, _, _ = tiny_report
+    one = run_cli("report", "--experiment", "paper-angle-band", "--out", "one",
+                  "--tracking-uri", uri, cwd=folder)
+    assert one.returncode == 0, one.stderr
+    assert (folder / "one" / "figures" / "angle_band.png").exists()
+    sweep = [p for p in paper_sweeps() if p.name == "points.yaml"][0]
+    two = run_cli("report", "--sweep", str(sweep), "--scale", "tiny", "--out", "two",
+                  "--tracking-uri", uri, cwd=folder)
+    assert two.returncode == 0, two.stderr
+    assert (folder / "two" / "tables" / "points.md").exists()
+    for args, message in [
+        (["--experiment", "paper-angel-band"], "no experiment 'paper-angel-band'"),
+        (["--sweep", "missing.yaml"], "cannot read sweep file missing.yaml"),
+        (["--sweep", str(sweep), "--scale", "huge"], "has no scale 'huge'"),
+    ]:
+        bad = run_cli("report", *args, "--out", "x", "--tracking-uri", uri, cwd=folder)
+        assert bad.returncode == 2 and message in bad.stderr, bad.stderr
+        assert "Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+
+
+def test_published_numbers_ship_with_the_package():
+    shipped = pd.concat([published("allmetrics"), published("allmetricspix3d")])
+    source = pd.read_csv(SHARED / "reference" / "paper_tables.csv")
+    assert len(shipped) == len(source) and np.allclose(shipped["value"], source["value"])
+
+
+def _chromium():
+    return shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.mark.skipif(not _chromium() or not shutil.which("chromedriver"),
+                    reason="needs Debian's chromium and chromium-driver (.ci/run installs them)")
+def test_index_html_loads_with_all_images_in_a_real_browser(tiny_report):
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+
+    folder, _, _, _ = tiny_report
+    options = webdriver.ChromeOptions()
+    options.binary_location = _chromium()
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                 "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                 "--allow-file-access-from-files", f"--user-data-dir={folder / 'chromium'}"):
+        options.add_argument(flag)
+    driver = webdriver.Chrome(service=Service(shutil.which("chromedriver")), options=options)
+    try:
+        driver.get((folder / "report" / "index.html").as_uri())
+        images = driver.execute_script(
+            "return Array.from(document.images).map(i => [i.getAttribute('src'), i.complete, i.naturalWidth])")
+        title = driver.title
+    finally:
+        driver.quit()
+    assert title == "3DMPE, reproduced with mpe3d"
+    assert sorted(src for src, _, _ in images) == sorted(f"figures/{n}.png" for n in FIGURES)
+    broken = [src for src, complete, width in images if not complete or width == 0]
+    assert not broken, broken
