@@ -6,6 +6,8 @@ from importlib.resources import files
 
 import pandas as pd
 
+from harness.config import KEYS
+
 # How each solver is named in tables and figures: the paper's method is
 # "3DMPE (paper)", our exact solver is "ours (refine)".
 METHOD_LABELS = {"baseline": "baseline (MDS)", "sgd": "3DMPE (paper)", "refine": "ours (refine)",
@@ -35,6 +37,12 @@ def runs(tracker, experiment: str, hashes=None) -> pd.DataFrame:
     if hashes is not None:
         frame = frame[frame["config_hash"].isin(set(hashes))]
     frame = frame.copy()
+    for key, spec in KEYS.items():  # runs logged before a key existed ran at its default
+        if not spec.hashed_at_default:
+            column = frame[key] if key in frame else pd.Series(index=frame.index, dtype=object)
+            frame[key] = column.where(column.notna(), spec.default)
+            if isinstance(spec.default, (int, float)):
+                frame[key] = pd.to_numeric(frame[key])
     frame["method"] = frame["solver.name"].map(method_label)
     return frame.reset_index(drop=True)
 

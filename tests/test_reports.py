@@ -135,3 +135,18 @@ def test_index_html_loads_with_all_images_in_a_real_browser(tiny_report):
     assert sorted(src for src, _, _ in images) == sorted(f"figures/{n}.png" for n in FIGURES)
     broken = [src for src, complete, width in images if not complete or width == 0]
     assert not broken, broken
+
+
+def test_runs_logged_before_a_key_existed_read_as_its_default():
+    from reports.load import runs as load_runs
+
+    class Store:  # what runs_frame returns for runs logged before view_layout and min_views
+        def runs_frame(self, experiment):
+            return pd.DataFrame({"status": ["FINISHED"] * 2, "config_hash": ["a", "b"],
+                                 "solver.name": ["sgd", "refine"],
+                                 "visibility.min_views": [np.nan, 2.0]})
+
+    frame = load_runs(Store(), "old")
+    assert list(frame["visibility.min_views"]) == [0, 2] and set(frame["view_layout"]) == {"band"}
+    assert list(frame["method"]) == ["3DMPE (paper)", "ours (refine)"]
+    assert list(load_runs(Store(), "old", hashes=["b"])["config_hash"]) == ["b"]
