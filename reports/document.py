@@ -119,6 +119,5 @@ class Report:
 
 _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;line-height:1.4}"
         "table{border-collapse:collapse;font-size:0.85em;margin:0.5em 0}"
-        "th,td{padding:2px 8px;border-bottom:1px solid #ddd;text-align:right}"
-        "th:first-child,td:first-child{text-align:left}"
+        "th,td{padding:2px 8px;border-bottom:1px solid #ddd;text-align:left;vertical-align:top}"
         "img{max-width:100%}figure{margin:1em 0}figcaption{font-size:0.9em;color:#333}")
