@@ -173,7 +173,19 @@ def test_dry_run_lists_runs_without_tracking(tmp_path, capsys):
 
 @pytest.mark.parametrize("path", sorted((REPO / "sweeps").rglob("*.yaml")), ids=lambda p: p.name)
 def test_shipped_sweeps_are_valid(path):
-    assert load_sweep(path).runs
+    full = load_sweep(path)
+    assert full.runs
+    for scale in full.scales[1:]:  # every scale is valid, and smaller than the paper's
+        assert 0 < len(load_sweep(path, scale).runs) <= len(full.runs)
+
+
+def test_paper_sweeps_cover_every_experiment_of_the_recipe():
+    from reports.paper import RECIPE
+    from sweeps import paper_sweeps
+
+    sweeps = [load_sweep(p) for p in paper_sweeps()]
+    assert sorted(s.name for s in sweeps) == sorted(e.name for e in RECIPE)
+    assert all(set(s.scales) == {"full", "quick", "tiny"} and "Paper" in s.description for s in sweeps)
 
 
 SCALED = """
