@@ -181,7 +181,11 @@ def solve_sgd(observations: Observations, *, init: str = "smart", random_state=N
             termination = "stress below tol" if full < tol else "gradient below tol"
             break
         X_new = X - step_X.mu * gX
-        P_new = P if fixed else project_rows(P - step_P.mu * gP)
+        P_step = P if fixed else P - step_P.mu * gP
+        if not (np.all(np.isfinite(X_new)) and np.all(np.isfinite(P_step))):
+            termination = "non-finite step"  # the adaptive step overflowed on a flat stress
+            break
+        P_new = P if fixed else project_rows(P_step)
         s_new, gX_new, gP_new = evaluate(X_new, P_new, masks)
         if not np.isfinite(s_new):
             termination = "non-finite stress"
