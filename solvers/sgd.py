@@ -115,6 +115,8 @@ class _Step:
             return self.mu
         if self.rule == "mm":
             mu = min(np.sqrt(1.0 + self.theta) * self.mu, float(np.linalg.norm(dx)) / (2.0 * ndg))
+            if not np.isfinite(mu):  # a vanishing gradient change on a flat stress
+                return self.mu
             self.theta, self.mu = mu / self.mu, mu
         else:
             curvature = float(np.vdot(dx, dg))
