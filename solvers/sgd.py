@@ -115,7 +115,7 @@ class _Step:
             return self.mu
         if self.rule == "mm":
             mu = min(np.sqrt(1.0 + self.theta) * self.mu, float(np.linalg.norm(dx)) / (2.0 * ndg))
-            if not np.isfinite(mu):  # a vanishing gradient change on a flat stress
+            if not np.isfinite(mu) or mu <= 0.0:  # no move, or a vanishing gradient change
                 return self.mu
             self.theta, self.mu = mu / self.mu, mu
         else:
