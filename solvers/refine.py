@@ -115,11 +115,12 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
         scale = max(_HUBER_K * spread, 1e-12 * radius)  # noise-free: residuals are ~0
     stress = Stress(observations, loss, scale)
     f0 = start.stress if loss == "l2" else None  # the start's stress is known
-    total = _sum_squared_distances(observations)
+    total = stress.target_energy()
     X, P, value, history, iterations, termination = _descend(observations, stress, X0, P0, f0,
                                                              max_iter, tol, total)
     used_start = "factorize"
-    if value > _NOISY * total:  # noisy views: the algebraic start may sit in a poor basin
+    if value > _NOISY * total and not stress.sparse:  # noisy views: the algebraic start
+        # may sit in a poor basin; the smart start is an N x N MDS, so only when dense
         from .sgd import initial_state
 
         Xs, Ps = initial_state(observations, Stress(observations), "smart", rng, "smacof")
@@ -168,15 +169,3 @@ def _minimise(f, theta0: np.ndarray, history: list, max_iter: int, tol: float):
     if result.fun > history[0]:  # the line search should prevent this; never trust it
         return theta0, history[0], int(result.nit), "kept the factorize start (no decrease)"
     return result.x, float(result.fun), int(result.nit), termination
-
-
-def _sum_squared_distances(observations: Observations) -> float:
-    """sum_k sum_{i>j} (D^k_ij)^2, from coordinates when a view has them (O(n))."""
-    total = 0.0
-    for view in observations.views:
-        if view.coordinates is not None:  # sum over pairs of |y_i - y_j|^2 = n sum |y_i - ybar|^2
-            centred = view.coordinates - view.coordinates.mean(axis=0)
-            total += view.size * float(np.sum(centred ** 2))
-        else:
-            total += 0.5 * float(np.sum(view.distances ** 2))
-    return total

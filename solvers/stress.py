@@ -16,12 +16,36 @@ Python loop touches a pair.
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
 from .base import Observations
 
 # Rows per block: keeps each temporary at about 4M float64 entries (32 MB).
 _BLOCK_ENTRIES = 1 << 22
+# A view given as 2D coordinates with more points than this is scored on a
+# sparse pair set instead of all pairs: no n x n array on the coordinates path.
+DENSE_LIMIT = 4096
+NEIGHBOURS = 8  # nearest neighbours per point in the view (local rigidity)
+RANDOM_PAIRS = 8  # random partners per point (global rigidity)
+
+
+def sparse_pairs(Y: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(i, j), i < j: each point's nearest neighbours in the view and random partners.
+
+    On noise-free views the stress over these pairs is zero exactly where the
+    all-pairs stress is, for any rigid graph; k-NN plus random edges is rigid
+    with overwhelming probability.
+    """
+    n = len(Y)
+    k = min(NEIGHBOURS, n - 1)
+    _, nn = cKDTree(Y).query(Y, k=k + 1)
+    i = np.concatenate([np.repeat(np.arange(n), k), np.repeat(np.arange(n), RANDOM_PAIRS)])
+    j = np.concatenate([nn[:, 1:].ravel(), rng.integers(0, n, size=n * RANDOM_PAIRS)])
+    a, b = np.minimum(i, j), np.maximum(i, j)
+    keep = a != b
+    pairs = np.unique(a[keep].astype(np.int64) * n + b[keep])
+    return pairs // n, pairs % n
 
 
 LOSSES = ("l2", "huber", "soft_l1")
@@ -49,11 +73,56 @@ class Stress:
         self.loss, self.scale = loss, float(scale)
         self.n_points = observations.n_points
         self.ids = [view.ids for view in observations.views]
-        self.D = [np.asarray(view.distance_matrix(), dtype=np.float64) for view in observations.views]
-        self.n_pairs = sum(len(i) * (len(i) - 1) // 2 for i in self.ids)
+        # Per view: a dense distance matrix, or (i, j, d) over a sparse pair set.
+        self.D, self.pairs = [], []
+        rng = np.random.default_rng(0)  # the pair set is part of the objective: fixed
+        for view in observations.views:
+            if view.coordinates is not None and view.size > DENSE_LIMIT:
+                i, j = sparse_pairs(view.coordinates, rng)
+                d = np.linalg.norm(view.coordinates[i] - view.coordinates[j], axis=1)
+                self.D.append(None)
+                self.pairs.append((i, j, d))
+            else:
+                self.D.append(np.asarray(view.distance_matrix(), dtype=np.float64))
+                self.pairs.append(None)
+        self.n_pairs = sum(len(p[0]) if p else len(i) * (len(i) - 1) // 2
+                           for i, p in zip(self.ids, self.pairs))
+
+    @property
+    def sparse(self) -> bool:
+        """Whether some view is scored on a sparse pair set rather than all pairs."""
+        return any(p is not None for p in self.pairs)
+
+    def target_energy(self) -> float:
+        """sum of D_ij^2 over the pairs the stress counts: its scale."""
+        return sum(float(p[2] @ p[2]) if p else 0.5 * float(np.sum(D * D))
+                   for D, p in zip(self.D, self.pairs))
+
+    def _sparse_view(self, k: int, Y: np.ndarray, mask: np.ndarray | None, want_grad: bool):
+        i, j, d = self.pairs[k]
+        diff = Y[i] - Y[j]
+        e = np.sqrt(np.einsum("pd,pd->p", diff, diff))
+        r = d - e
+        if mask is not None:
+            r = r * mask
+        if self.loss == "l2":
+            total = float(r @ r)
+        else:
+            rho, r = _loss(r, self.loss, self.scale)
+            total = float(rho.sum())
+        if not want_grad:
+            return total, None
+        B = r / np.maximum(e, 1e-12)
+        force = -2.0 * B[:, None] * diff  # dS/dy_i for each pair; dS/dy_j is its negative
+        n = len(Y)
+        grad = np.column_stack([np.bincount(i, force[:, c], n) - np.bincount(j, force[:, c], n)
+                                for c in range(Y.shape[1])])
+        return total, grad
 
     def _view(self, k: int, Y: np.ndarray, mask: np.ndarray | None, want_grad: bool):
         """Stress of view k and, if asked, dS/dY, for image points Y (n_k x 2)."""
+        if self.pairs[k] is not None:
+            return self._sparse_view(k, Y, mask, want_grad)
         D = self.D[k]
         n = len(Y)
         grad = np.zeros_like(Y) if want_grad else None
@@ -85,6 +154,15 @@ class Stress:
         return sum(self._view(k, X[ids] @ P[k].T, None if masks is None else masks[k], False)[0]
                    for k, ids in enumerate(self.ids))
 
+    def view_rms(self, X: np.ndarray, P: np.ndarray) -> list[float]:
+        """Per view, the RMS residual D_ij - ||P(x_i - x_j)|| over the pairs it counts."""
+        out = []
+        for k, ids in enumerate(self.ids):
+            total = self._view(k, X[ids] @ P[k].T, None, False)[0]
+            pairs = len(self.pairs[k][0]) if self.pairs[k] else len(ids) * (len(ids) - 1) // 2
+            out.append(float(np.sqrt(total / max(pairs, 1))))
+        return out
+
     def value_and_grad(self, X: np.ndarray, P: np.ndarray, masks=None, want_P: bool = False):
         """(S, dS/dX, dS/dP or None) at (X, P), optionally on a minibatch ``masks``."""
         total = 0.0
@@ -105,18 +183,26 @@ class Stress:
         sample of observed pairs: a robust estimate of the residuals' sigma."""
         residuals = []
         for k, ids in enumerate(self.ids):
+            image = X[ids] @ P[k].T
+            if self.pairs[k] is not None:
+                i, j, d = self.pairs[k]
+                pick = rng.integers(0, len(d), size=min(len(d), max(1, sample // len(self.ids))))
+                residuals.append(d[pick] - np.linalg.norm(image[i[pick]] - image[j[pick]], axis=1))
+                continue
             n = len(ids)
             i, j = rng.integers(0, n, size=(2, max(1, sample // len(self.ids))))
             keep = i != j
             i, j = i[keep], j[keep]
-            image = X[ids] @ P[k].T
             residuals.append(self.D[k][i, j] - np.linalg.norm(image[i] - image[j], axis=1))
         return 1.4826 * float(np.median(np.abs(np.concatenate(residuals))))
 
     def sample_masks(self, c: float, rng: np.random.Generator):
         """A minibatch xi ~ Xi(D, c): each observed pair kept with probability c."""
         masks = []
-        for ids in self.ids:
+        for ids, pairs in zip(self.ids, self.pairs):
+            if pairs is not None:
+                masks.append(rng.random(len(pairs[0])) < c)
+                continue
             n = len(ids)
             keep = np.triu(rng.random((n, n), dtype=np.float32) < c, 1)
             masks.append(keep | keep.T)
