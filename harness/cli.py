@@ -311,6 +311,37 @@ def cmd_reproduce(args) -> int:
     return code
 
 
+def cmd_reconstruct(args) -> int:
+    from .reconstruct import OUTPUT_FORMATS, reconstruct, write_cloud
+
+    out, report = Path(args.out), Path(args.report) if args.report else None
+    if out.suffix.lower() not in OUTPUT_FORMATS:  # before any work, not after it
+        raise MpeError(f"--out {out}: unknown output format '{out.suffix}' "
+                       f"(expected {', '.join(OUTPUT_FORMATS)})")
+    if report is not None and report.suffix.lower() != ".json":
+        raise MpeError(f"--report {report}: expected a .json file")
+    result = reconstruct(args.input, projections=args.projections, solver=args.solver,
+                         loss=args.loss, random_state=args.seed)
+    write_cloud(out, result.points, result.ids)
+    summary = result.report
+    if report is not None:
+        from .reconstruct import atomic_write
+
+        text = json.dumps({"input": str(args.input), "output": str(out), **summary}, indent=1)
+        atomic_write(report, lambda temp: Path(temp).write_text(text))
+    worst = max(summary["rms_residual_per_view"])
+    print(f"{summary['points']} points from {summary['views']} views ({summary['setting']} "
+          f"projections, {summary['solver']}): stress {summary['stress']:.3g}, worst view RMS "
+          f"residual {worst:.3g}, {summary['unplaced']['count']} unplaced, "
+          f"{summary['runtime_s']:.2f} s")
+    for message in ([f"{summary['unplaced']['count']} points are seen in fewer than 2 views and "
+                     "cannot be placed (their ids are in the report)"]
+                    if summary["unplaced"]["count"] else []):
+        print(f"mpe3d: warning: {message}", file=sys.stderr)
+    print(f"wrote {out}" + (f" and {report}" if report else ""))
+    return 0
+
+
 def cmd_ui(args) -> int:
     import socket
     import subprocess
@@ -406,6 +437,20 @@ def build_parser() -> argparse.ArgumentParser:
                       help="every run ever made, not only the latest of each config")
     runs.add_argument("--tracking-uri", metavar="URI")
     runs.set_defaults(func=cmd_runs)
+    rec = sub.add_parser("reconstruct", help="rebuild a 3D cloud from your own keypoints or "
+                         "distance matrices", description="Read matched 2D keypoints (CSV view,point,x,y; "
+                         "NPZ; JSON; or a folder of .npz per view) or per-view distance matrices, check "
+                         "them, and write the 3D cloud with each point's id.")
+    rec.add_argument("input", metavar="INPUT", help="a .csv, .npz or .json file, or a folder of .npz")
+    rec.add_argument("--out", required=True, metavar="CLOUD", help="output: .ply, .csv or .npy")
+    rec.add_argument("--projections", metavar="FILE",
+                     help="known projections (.npy or .json, K matrices 2x3 or 3x3): the fixed setting")
+    rec.add_argument("--solver", default="refine", help="refine (default), factorize or sgd")
+    rec.add_argument("--loss", default="l2", choices=("l2", "huber"), help="refine's loss (default l2)")
+    rec.add_argument("--report", metavar="FILE.json", help="write stress, per-view residuals, "
+                     "unplaced ids, projections and runtime as JSON")
+    rec.add_argument("--seed", type=int, default=0, help="random state (default 0)")
+    rec.set_defaults(func=cmd_reconstruct)
     ui = sub.add_parser("ui", help="start the MLflow UI on the tracking store, on 127.0.0.1")
     ui.add_argument("--tracking-uri", metavar="URI")
     ui.add_argument("--port", type=int, default=5000)

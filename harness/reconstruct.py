@@ -1,0 +1,388 @@
+"""Reconstruct your own data: matched 2D keypoints (or distance matrices) -> a 3D cloud.
+
+Inputs (checked hard at this boundary, every error one line naming the file,
+view and row):
+
+* CSV, long format with a header ``view,point,x,y``: one row per observation;
+* NPZ with ``view<k>_ids`` and ``view<k>_xy`` or ``view<k>_dist`` arrays, or
+  a folder with one ``<name>.npz`` per view holding ``ids`` and ``xy`` or
+  ``dist``;
+* JSON ``{"views": [{"ids": [...], "xy": [[x, y], ...]} | {"ids": [...], "dist": [[...]]}]}``.
+
+Known projections (the fixed setting) come as a ``.npy`` or ``.json`` of K
+matrices, 2x3 with orthonormal rows or 3x3 rotations, in view order.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+import solvers
+from solvers import Observations, View
+
+from .errors import MpeError
+
+INPUT_FORMATS = (".csv", ".npz", ".json")
+OUTPUT_FORMATS = (".ply", ".csv", ".npy")
+SOLVERS = ("refine", "factorize", "sgd")
+SYMMETRY_TOL = 1e-6  # relative: distance matrices written as text lose a little
+ORTHONORMAL_TOL = 1e-6
+
+
+@dataclass
+class Result:
+    """A reconstruction of user data: the cloud, its ids, and what to trust about it."""
+
+    points: np.ndarray  # (N, 3), in the frame of the given projections when fixed
+    ids: np.ndarray  # (N,) the input's point ids, in the order of ``points``
+    projections: np.ndarray  # (K, 2, 3), given or estimated
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+# -- reading -------------------------------------------------------------------
+
+def _finite(values: np.ndarray, where: str, what: str) -> np.ndarray:
+    try:
+        values = np.asarray(values, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise MpeError(f"{where}: {what} holds a non-numeric value") from None
+    bad = ~np.isfinite(values)
+    if bad.any():
+        row = int(np.argwhere(bad)[0][0])
+        raise MpeError(f"{where}: {what} row {row} is not a finite number")
+    return values
+
+
+def _read_csv(path: Path) -> list[dict]:
+    import pandas as pd
+
+    try:
+        frame = pd.read_csv(path, dtype={"view": str, "point": str}, keep_default_na=False)
+    except pd.errors.EmptyDataError:
+        raise MpeError(f"{path}: empty file") from None
+    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+        raise MpeError(f"{path}: not a CSV file ({str(exc).splitlines()[0]})") from None
+    frame.columns = [str(c).strip() for c in frame.columns]
+    for column in ("view", "point", "x", "y"):
+        if column not in frame.columns:
+            raise MpeError(f"{path}: missing column '{column}' (the header must be view,point,x,y)")
+    if frame.empty:
+        raise MpeError(f"{path}: empty file (a header and no rows)")
+    for column in ("x", "y"):
+        numbers = pd.to_numeric(frame[column], errors="coerce").to_numpy(dtype=float)
+        bad = np.flatnonzero(~np.isfinite(numbers))
+        if len(bad):
+            row = int(bad[0])
+            raise MpeError(f"{path}: row {row + 2}: {column} is not a finite number "
+                           f"({frame[column].iloc[row]!r})")
+        frame[column] = numbers
+    twice = frame.duplicated(["view", "point"], keep="first")
+    if twice.any():
+        row = int(np.flatnonzero(twice)[0])
+        view, point = frame["view"].iloc[row], frame["point"].iloc[row]
+        first = int(np.flatnonzero((frame["view"] == view) & (frame["point"] == point))[0])
+        raise MpeError(f"{path}: row {row + 2}: point '{point}' appears twice in view '{view}' "
+                       f"(first at row {first + 2})")
+    views = []
+    for name, group in frame.groupby("view", sort=False):
+        views.append({"name": str(name), "ids": group["point"].to_numpy(),
+                      "xy": group[["x", "y"]].to_numpy()})
+    return views
+
+
+def _view_from_arrays(arrays, name: str, where: str) -> dict:
+    if "ids" not in arrays:
+        raise MpeError(f"{where}: missing array 'ids'")
+    has_xy, has_dist = "xy" in arrays, "dist" in arrays
+    if has_xy == has_dist:
+        raise MpeError(f"{where}: give exactly one of 'xy' and 'dist'")
+    view = {"name": name, "ids": np.asarray(arrays["ids"]).ravel()}
+    view["xy" if has_xy else "dist"] = np.asarray(arrays["xy" if has_xy else "dist"])
+    return view
+
+
+def _read_npz(path: Path) -> list[dict]:
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        if path.stat().st_size == 0:
+            raise MpeError(f"{path}: empty file") from None
+        raise MpeError(f"{path}: not an NPZ file ({exc})") from None
+    names = sorted({key.split("_", 1)[0] for key in data.files if "_" in key},
+                   key=lambda v: (len(v), v))
+    if not names:
+        if set(data.files) & {"ids", "xy", "dist"}:  # one view per file, inside a folder
+            return [_view_from_arrays(data, path.stem, str(path))]
+        raise MpeError(f"{path}: empty file (no view<k>_ids arrays)")
+    return [_view_from_arrays({key.split("_", 1)[1]: data[key] for key in data.files
+                               if key.startswith(f"{name}_")}, name, f"{path}: {name}")
+            for name in names]
+
+
+def _read_folder(path: Path) -> list[dict]:
+    files = sorted(path.glob("*.npz"))
+    if not files:
+        raise MpeError(f"{path}: a folder input needs one .npz file per view (ids, and xy or dist)")
+    views = []
+    for file in files:
+        views += _read_npz(file)
+    return views
+
+
+def _read_json(path: Path) -> list[dict]:
+    text = path.read_text()
+    if not text.strip():
+        raise MpeError(f"{path}: empty file")
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise MpeError(f"{path}: malformed JSON at line {exc.lineno}: {exc.msg}") from None
+    if not isinstance(data, dict) or not isinstance(data.get("views"), list):
+        raise MpeError(f"{path}: expected an object with a list 'views'")
+    views = []
+    for k, item in enumerate(data["views"]):
+        if not isinstance(item, dict):
+            raise MpeError(f"{path}: view {k}: expected an object with 'ids' and 'xy' or 'dist'")
+        views.append(_view_from_arrays(item, str(k), f"{path}: view {k}"))
+    return views
+
+
+def read_views(path: str | Path) -> list[dict]:
+    """The views of an input file as dicts ``{name, ids, xy | dist}``, not yet checked."""
+    path = Path(path)
+    if path.is_dir():
+        return _read_folder(path)
+    if not path.exists():
+        raise MpeError(f"{path}: no such file")
+    readers = {".csv": _read_csv, ".npz": _read_npz, ".json": _read_json}
+    reader = readers.get(path.suffix.lower())
+    if reader is None:
+        raise MpeError(f"{path}: unknown input format '{path.suffix}' (expected .csv, .npz, "
+                       ".json, or a folder of .npz files)")
+    if path.stat().st_size == 0:
+        raise MpeError(f"{path}: empty file")
+    return reader(path)
+
+
+def read_projections(path: str | Path) -> np.ndarray:
+    """``(K, 2, 3)`` projections from a .npy or .json file of 2x3 or 3x3 matrices."""
+    path = Path(path)
+    if path.suffix.lower() not in (".npy", ".json"):
+        raise MpeError(f"{path}: unknown projections format '{path.suffix}' (expected .npy or .json)")
+    try:
+        if path.stat().st_size == 0:
+            raise MpeError(f"{path}: empty file")
+        data = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" \
+            else json.loads(path.read_text())
+    except OSError as exc:
+        raise MpeError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    except (ValueError, json.JSONDecodeError) as exc:
+        raise MpeError(f"{path}: not a {path.suffix} array file ({exc})") from None
+    mats = []
+    for k, m in enumerate(data if isinstance(data, list) or np.ndim(data) == 3 else [data]):
+        m = _finite(m, f"{path}: projection {k}", "matrix")
+        if m.shape not in ((2, 3), (3, 3)):
+            raise MpeError(f"{path}: projection {k} is {'x'.join(map(str, m.shape))}, "
+                           "expected 2x3 (orthonormal rows) or 3x3 (a rotation)")
+        error = np.abs(m @ m.T - np.eye(len(m))).max()
+        if error > ORTHONORMAL_TOL:
+            raise MpeError(f"{path}: projection {k}: rows are not orthonormal "
+                           f"(largest |P P^T - I| entry {error:.2g})")
+        mats.append(m[:2])
+    return np.stack(mats)
+
+
+# -- checking ------------------------------------------------------------------
+
+def _check_dist(D: np.ndarray, n: int, where: str) -> np.ndarray:
+    if D.ndim != 2 or D.shape[0] != D.shape[1]:
+        raise MpeError(f"{where}: dist is {'x'.join(map(str, D.shape))}, not square")
+    if D.shape[0] != n:
+        raise MpeError(f"{where}: dist is {D.shape[0]}x{D.shape[0]} but ids has {n} entries; "
+                       "they must match")
+    D = _finite(D, where, "dist")
+    scale = max(float(np.abs(D).max()), 1e-300)
+    asymmetry = float(np.abs(D - D.T).max())
+    if asymmetry > SYMMETRY_TOL * scale:
+        i, j = np.unravel_index(int(np.argmax(np.abs(D - D.T))), D.shape)
+        raise MpeError(f"{where}: dist is not symmetric (row {i}, column {j}: {D[i, j]:.6g} vs "
+                       f"{D[j, i]:.6g})")
+    if (D < 0).any():
+        i, j = np.argwhere(D < 0)[0]
+        raise MpeError(f"{where}: dist has a negative entry (row {i}, column {j}: {D[i, j]:.6g})")
+    if np.abs(np.diag(D)).max() > SYMMETRY_TOL * scale:
+        i = int(np.argmax(np.abs(np.diag(D))))
+        raise MpeError(f"{where}: dist has a non-zero diagonal (row {i}: {D[i, i]:.6g})")
+    return 0.5 * (D + D.T)
+
+
+def observations_from(views: Sequence[dict], projections=None, source: str = "input"):
+    """Check user views and turn them into :class:`solvers.Observations`.
+
+    Returns the observations and the point ids (index -> the user's id).
+    """
+    if len(views) < 2:
+        raise MpeError(f"{source}: {len(views)} view(s); reconstruction needs at least 2")
+    labels = [np.asarray(v["ids"]).astype(str) for v in views]
+    for k, (view, ids) in enumerate(zip(views, labels)):
+        where = f"{source}: view '{view.get('name', k)}'"
+        if len(ids) < 3:
+            raise MpeError(f"{where} has {len(ids)} point(s); each view needs at least 3")
+        unique, counts = np.unique(ids, return_counts=True)
+        if (counts > 1).any():
+            raise MpeError(f"{where}: point '{unique[counts > 1][0]}' appears twice")
+    all_ids, index = np.unique(np.concatenate(labels), return_inverse=True)
+    out, start = [], 0
+    for k, (view, ids) in enumerate(zip(views, labels)):
+        where = f"{source}: view '{view.get('name', k)}'"
+        rows = index[start:start + len(ids)]
+        start += len(ids)
+        if "xy" in view:
+            xy = _finite(view["xy"], where, "xy")
+            if xy.shape != (len(ids), 2):
+                raise MpeError(f"{where}: xy is {'x'.join(map(str, xy.shape))}, expected "
+                               f"{len(ids)}x2 (one row per id)")
+            out.append(View(ids=rows, coordinates=xy))
+        else:
+            D = _check_dist(np.asarray(view["dist"]), len(ids), where)
+            out.append(View(ids=rows, distances=D))
+    if projections is not None and len(projections) != len(out):
+        raise MpeError(f"projections: {len(projections)} matrices for {len(out)} views")
+    obs = Observations(n_points=len(all_ids), views=tuple(out), projections=projections)
+    return obs, _as_ids(all_ids)
+
+
+def _as_ids(labels: np.ndarray) -> np.ndarray:
+    """Integer ids back to integers; anything else stays text."""
+    try:
+        numbers = labels.astype(np.int64)
+    except ValueError:
+        return labels
+    return numbers if np.array_equal(numbers.astype(str), labels) else labels
+
+
+# -- solving -------------------------------------------------------------------
+
+def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
+                loss: str = "l2", random_state=0) -> Result:
+    """Rebuild a 3D cloud from user views (paper Eq. 1, fixed or variable setting).
+
+    Parameters
+    ----------
+    views : a path (CSV, NPZ, JSON, folder) or a list of ``{"ids", "xy" | "dist"}`` dicts
+        What each view saw: its point ids and their 2D coordinates or distance matrix.
+    projections : None, a path, or an array of K 2x3 / 3x3 matrices, default None
+        Known projections (fixed setting); None estimates them (variable setting).
+    solver : {"refine", "factorize", "sgd"}, default "refine"
+    loss : {"l2", "huber"}, default "l2"
+        refine's loss; huber tempers outlying distances or wrong matches.
+    random_state : int or Generator, default 0
+    """
+    source = str(views) if isinstance(views, (str, Path)) else "views"
+    if isinstance(views, (str, Path)):
+        views = read_views(views)
+    if isinstance(projections, (str, Path)):
+        projections = read_projections(projections)
+    elif projections is not None:
+        projections = np.asarray(projections, dtype=float)[:, :2]
+    if solver not in SOLVERS:
+        raise MpeError(f"--solver: '{solver}' is not one of {', '.join(SOLVERS)}")
+    obs, ids = observations_from(views, projections, source)
+    options = {"loss": loss} if solver == "refine" else {}
+    if loss != "l2" and solver != "refine":
+        raise MpeError(f"--loss {loss} needs --solver refine")
+    start = time.perf_counter()
+    rec = solvers.solve(solver, obs, random_state=random_state, **options)
+    runtime = time.perf_counter() - start
+    return Result(points=rec.points, ids=ids, projections=np.asarray(rec.projections),
+                  report=_report(obs, rec, ids, solver, loss, runtime))
+
+
+def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, runtime: float) -> dict:
+    from solvers.stress import Stress
+
+    stress = Stress(obs)
+    rms = stress.view_rms(rec.points, np.asarray(rec.projections))
+    seen = obs.visibility().sum(axis=0)
+    unplaced = ids[seen < 2]
+    return {
+        "points": int(obs.n_points), "views": int(obs.n_views),
+        "setting": "fixed" if obs.fixed else "variable", "solver": solver, "loss": loss,
+        "stress": float(stress.value(rec.points, np.asarray(rec.projections))),
+        "stress_pairs": "sparse (k-NN and random pairs per view)" if stress.sparse else "all",
+        "rms_residual_per_view": [float(r) for r in rms],
+        "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist()},
+        "projections": np.asarray(rec.projections).tolist(),
+        "iterations": int(rec.iterations), "termination": rec.termination,
+        "runtime_s": runtime,
+    }
+
+
+# -- writing -------------------------------------------------------------------
+
+def atomic_write(path: Path, write) -> None:
+    """``write(temp_path)``, then rename over ``path``: never a half-written file."""
+    path = Path(path)
+    temp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        write(temp)
+        os.replace(temp, path)
+    except BaseException:
+        temp.unlink(missing_ok=True)
+        raise
+
+
+def _ply(path: Path, points: np.ndarray, ids: np.ndarray) -> None:
+    """Binary PLY with an ``id`` vertex property (int, or a list of UTF-8 bytes for text ids)."""
+    n = len(points)
+    text = ids.dtype.kind not in "iu"
+    id_property = "property list uchar uchar id" if text else "property int id"
+    header = ("ply\nformat binary_little_endian 1.0\ncomment mpe3d reconstruction\n"
+              f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
+              f"{id_property}\nend_header\n").encode()
+    with open(path, "wb") as handle:
+        handle.write(header)
+        if not text:
+            if n and (ids.min() < -2 ** 31 or ids.max() >= 2 ** 31):
+                raise MpeError("point ids do not fit a PLY int; write .csv or .npy instead")
+            record = np.empty(n, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("id", "<i4")])
+            record["x"], record["y"], record["z"], record["id"] = *points.T, ids
+            handle.write(record.tobytes())
+            return
+        for p, label in zip(points, ids):
+            raw = str(label).encode()[:255]
+            handle.write(p.astype("<f8").tobytes() + bytes([len(raw)]) + raw)
+
+
+def write_cloud(path: str | Path, points: np.ndarray, ids: np.ndarray) -> Path:
+    """The cloud as PLY, CSV or NPY (by extension), ids kept, written atomically."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in OUTPUT_FORMATS:
+        raise MpeError(f"--out {path}: unknown output format '{path.suffix}' "
+                       f"(expected {', '.join(OUTPUT_FORMATS)})")
+    if not path.parent.is_dir():
+        raise MpeError(f"--out {path}: folder {path.parent} does not exist")
+    if suffix == ".ply":
+        atomic_write(path, lambda temp: _ply(temp, points, ids))
+    elif suffix == ".csv":
+        import pandas as pd
+
+        frame = pd.DataFrame({"id": ids, "x": points[:, 0], "y": points[:, 1], "z": points[:, 2]})
+        atomic_write(path, lambda temp: frame.to_csv(temp, index=False, float_format="%.17g"))
+    else:
+        record = np.empty(len(points), dtype=[("id", ids.dtype), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+        record["id"], record["x"], record["y"], record["z"] = ids, *points.T
+
+        def save(temp):
+            with open(temp, "wb") as handle:  # np.save(path) would append .npy to the temp name
+                np.save(handle, record)
+        atomic_write(path, save)
+    return path
