@@ -340,25 +340,32 @@ def atomic_write(path: Path, write) -> None:
 
 
 def _ply(path: Path, points: np.ndarray, ids: np.ndarray) -> None:
-    """Binary PLY with an ``id`` vertex property (int, or a list of UTF-8 bytes for text ids)."""
+    """Binary PLY with an ``id`` vertex property: an int, or for text ids a list of
+    UTF-8 bytes padded with NULs to one length (so readers that expect equal
+    list lengths, like trimesh's, can load it)."""
     n = len(points)
-    text = ids.dtype.kind not in "iu"
-    id_property = "property list uchar uchar id" if text else "property int id"
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if ids.dtype.kind in "iu":
+        if n and (ids.min() < -2 ** 31 or ids.max() >= 2 ** 31):
+            raise MpeError("point ids do not fit a PLY int; write .csv or .npy instead")
+        id_property, values = "property int id", [ids.astype("<i4")]
+        fields.append(("id", "<i4"))
+    else:
+        raw = np.char.encode(ids.astype(str), "utf-8")
+        width = max(1, raw.dtype.itemsize)
+        if width > 255:
+            raise MpeError("point ids longer than 255 bytes do not fit a PLY list; write .csv or .npy")
+        id_property, values = "property list uchar uchar id", [np.full(n, width, "u1"), raw]
+        fields += [("length", "u1"), ("id", f"S{width}")]
+    record = np.empty(n, dtype=fields)
+    for name, column in zip(record.dtype.names, [*points.T, *values]):
+        record[name] = column
     header = ("ply\nformat binary_little_endian 1.0\ncomment mpe3d reconstruction\n"
               f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
               f"{id_property}\nend_header\n").encode()
     with open(path, "wb") as handle:
         handle.write(header)
-        if not text:
-            if n and (ids.min() < -2 ** 31 or ids.max() >= 2 ** 31):
-                raise MpeError("point ids do not fit a PLY int; write .csv or .npy instead")
-            record = np.empty(n, dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("id", "<i4")])
-            record["x"], record["y"], record["z"], record["id"] = *points.T, ids
-            handle.write(record.tobytes())
-            return
-        for p, label in zip(points, ids):
-            raw = str(label).encode()[:255]
-            handle.write(p.astype("<f8").tobytes() + bytes([len(raw)]) + raw)
+        handle.write(record.tobytes())
 
 
 def write_cloud(path: str | Path, points: np.ndarray, ids: np.ndarray) -> Path:
