@@ -334,9 +334,7 @@ def cmd_reconstruct(args) -> int:
           f"projections, {summary['solver']}): stress {summary['stress']:.3g}, worst view RMS "
           f"residual {worst:.3g}, {summary['unplaced']['count']} unplaced, "
           f"{summary['runtime_s']:.2f} s")
-    for message in ([f"{summary['unplaced']['count']} points are seen in fewer than 2 views and "
-                     "cannot be placed (their ids are in the report)"]
-                    if summary["unplaced"]["count"] else []):
+    for message in summary["warnings"]:
         print(f"mpe3d: warning: {message}", file=sys.stderr)
     print(f"wrote {out}" + (f" and {report}" if report else ""))
     return 0

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -26,6 +27,7 @@ import numpy as np
 
 import solvers
 from solvers import Observations, View
+from solvers.degenerate import DegenerateWarning
 
 from .errors import MpeError
 
@@ -299,10 +301,16 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     if loss != "l2" and solver != "refine":
         raise MpeError(f"--loss {loss} needs --solver refine")
     start = time.perf_counter()
-    rec = solvers.solve(solver, obs, random_state=random_state, **options)
+    with warnings.catch_warnings(record=True) as caught:  # notes about the input go in the report
+        warnings.simplefilter("always", DegenerateWarning)
+        rec = solvers.solve(solver, obs, random_state=random_state, **options)
     runtime = time.perf_counter() - start
-    return Result(points=rec.points, ids=ids, projections=np.asarray(rec.projections),
-                  report=_report(obs, rec, ids, solver, loss, runtime))
+    for w in caught:
+        if not issubclass(w.category, DegenerateWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    report = _report(obs, rec, ids, solver, loss, runtime)
+    report["warnings"] = [str(w.message) for w in caught if issubclass(w.category, DegenerateWarning)]
+    return Result(points=rec.points, ids=ids, projections=np.asarray(rec.projections), report=report)
 
 
 def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, runtime: float) -> dict:

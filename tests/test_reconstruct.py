@@ -215,3 +215,15 @@ def test_sparse_pair_stress_gradient_matches_finite_differences():
     h = 1e-6
     numeric = (stress.value(X + h * V, P + h * W) - stress.value(X - h * V, P - h * W)) / (2 * h)
     assert numeric == pytest.approx(np.vdot(gX, V) + np.vdot(gP, W), rel=1e-6)
+
+
+def test_points_seen_once_are_reported_by_id(tmp_path):
+    rows = [(0, p, x, y) for p, x, y in (("a", 0, 0), ("b", 1, 0), ("c", 0, 1), ("d", 1, 1), ("lone", 2, 2))]
+    rows += [(1, p, x, y) for p, x, y in (("a", 0, 0), ("b", 0.8, 0.1), ("c", 0.1, 0.9), ("d", 0.9, 1))]
+    pd.DataFrame(rows, columns=["view", "point", "x", "y"]).to_csv(tmp_path / "kp.csv", index=False)
+    done = run_cli("reconstruct", "kp.csv", "--out", "c.csv", "--report", "r.json", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["unplaced"] == {"count": 1, "ids": ["lone"]}
+    assert "mpe3d: warning: 1 points are seen in fewer than 2 views" in done.stderr
+    assert "Traceback" not in done.stderr and "DegenerateWarning" not in done.stderr
