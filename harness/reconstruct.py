@@ -290,12 +290,15 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     source = str(views) if isinstance(views, (str, Path)) else "views"
     if isinstance(views, (str, Path)):
         views = read_views(views)
+    projections_source = "projections"
     if isinstance(projections, (str, Path)):
-        projections = read_projections(projections)
+        projections_source, projections = str(projections), read_projections(projections)
     elif projections is not None:
         projections = np.asarray(projections, dtype=float)[:, :2]
     if solver not in SOLVERS:
         raise MpeError(f"--solver: '{solver}' is not one of {', '.join(SOLVERS)}")
+    if projections is not None and len(projections) != len(views):
+        raise MpeError(f"{projections_source}: {len(projections)} matrices for {len(views)} views")
     obs, ids = observations_from(views, projections, source)
     options = {"loss": loss} if solver == "refine" else {}
     if loss != "l2" and solver != "refine":
