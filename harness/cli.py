@@ -312,12 +312,10 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from .reconstruct import OUTPUT_FORMATS, reconstruct, write_cloud
+    from .reconstruct import check_output, reconstruct, write_cloud
 
-    out, report = Path(args.out), Path(args.report) if args.report else None
-    if out.suffix.lower() not in OUTPUT_FORMATS:  # before any work, not after it
-        raise MpeError(f"--out {out}: unknown output format '{out.suffix}' "
-                       f"(expected {', '.join(OUTPUT_FORMATS)})")
+    out = check_output(args.out)  # before any work, not after it
+    report = Path(args.report) if args.report else None
     if report is not None and report.suffix.lower() != ".json":
         raise MpeError(f"--report {report}: expected a .json file")
     result = reconstruct(args.input, projections=args.projections, solver=args.solver,

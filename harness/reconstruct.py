@@ -225,13 +225,16 @@ def _check_dist(D: np.ndarray, n: int, where: str) -> np.ndarray:
     return 0.5 * (D + D.T)
 
 
-def observations_from(views: Sequence[dict], projections=None, source: str = "input"):
+def observations_from(views: Sequence[dict], projections=None, source: str = "input",
+                      projections_source: str = "projections"):
     """Check user views and turn them into :class:`solvers.Observations`.
 
     Returns the observations and the point ids (index -> the user's id).
     """
     if len(views) < 2:
         raise MpeError(f"{source}: {len(views)} view(s); reconstruction needs at least 2")
+    if projections is not None and len(projections) != len(views):
+        raise MpeError(f"{projections_source}: {len(projections)} matrices for {len(views)} views")
     labels = [np.asarray(v["ids"]).astype(str) for v in views]
     for k, (view, ids) in enumerate(zip(views, labels)):
         where = f"{source}: view '{view.get('name', k)}'"
@@ -255,8 +258,6 @@ def observations_from(views: Sequence[dict], projections=None, source: str = "in
         else:
             D = _check_dist(np.asarray(view["dist"]), len(ids), where)
             out.append(View(ids=rows, distances=D))
-    if projections is not None and len(projections) != len(out):
-        raise MpeError(f"projections: {len(projections)} matrices for {len(out)} views")
     obs = Observations(n_points=len(all_ids), views=tuple(out), projections=projections)
     return obs, _as_ids(all_ids)
 
@@ -297,9 +298,7 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
         projections = np.asarray(projections, dtype=float)[:, :2]
     if solver not in SOLVERS:
         raise MpeError(f"--solver: '{solver}' is not one of {', '.join(SOLVERS)}")
-    if projections is not None and len(projections) != len(views):
-        raise MpeError(f"{projections_source}: {len(projections)} matrices for {len(views)} views")
-    obs, ids = observations_from(views, projections, source)
+    obs, ids = observations_from(views, projections, source, projections_source)
     options = {"loss": loss} if solver == "refine" else {}
     if loss != "l2" and solver != "refine":
         raise MpeError(f"--loss {loss} needs --solver refine")
@@ -379,15 +378,21 @@ def _ply(path: Path, points: np.ndarray, ids: np.ndarray) -> None:
         handle.write(record.tobytes())
 
 
-def write_cloud(path: str | Path, points: np.ndarray, ids: np.ndarray) -> Path:
-    """The cloud as PLY, CSV or NPY (by extension), ids kept, written atomically."""
+def check_output(path: str | Path) -> Path:
+    """``path`` if a cloud can be written there (a known extension, an existing folder)."""
     path = Path(path)
-    suffix = path.suffix.lower()
-    if suffix not in OUTPUT_FORMATS:
+    if path.suffix.lower() not in OUTPUT_FORMATS:
         raise MpeError(f"--out {path}: unknown output format '{path.suffix}' "
                        f"(expected {', '.join(OUTPUT_FORMATS)})")
     if not path.parent.is_dir():
         raise MpeError(f"--out {path}: folder {path.parent} does not exist")
+    return path
+
+
+def write_cloud(path: str | Path, points: np.ndarray, ids: np.ndarray) -> Path:
+    """The cloud as PLY, CSV or NPY (by extension), ids kept, written atomically."""
+    path = check_output(path)
+    suffix = path.suffix.lower()
     if suffix == ".ply":
         atomic_write(path, lambda temp: _ply(temp, points, ids))
     elif suffix == ".csv":
