@@ -44,7 +44,8 @@ def cmd_run(args) -> int:
     from .execute import run, write_outputs
 
     overrides = dict(parse_override(item) for item in args.overrides)
-    config = config_from_file(args.config, overrides) if args.config else make_config(overrides)
+    config = config_from_file(args.config, overrides, args.max_yaml_mb) if args.config \
+        else make_config(overrides)
     result = run(config)
     summary = result.summary()
     for message in summary["warnings"]:
@@ -105,10 +106,25 @@ def _dry_run(sweeps) -> int:
 
 def _nothing_to_do(plan, uri: str) -> str:
     parts = [f"{plan.skipped_finished} finished"]
+    if plan.reused_stale:
+        parts.append(f"{plan.reused_stale} by other code, reused on purpose (--reuse-stale)")
     if plan.skipped_failed:
         parts.append(f"{plan.skipped_failed} failed (--rerun-failed retries them)")
     return (f"{plan.sweep.name}: nothing to run: all {len(plan.sweep.runs)} runs are already "
             f"tracked in {uri} ({', '.join(parts)}; --force reruns everything)")
+
+
+def _outcome(plan) -> str:
+    text = (f"{plan.sweep.name}: {plan.counts['FINISHED']} finished, {plan.counts['FAILED']} failed, "
+            f"{plan.skipped} skipped (already tracked) of {len(plan.sweep.runs)} runs")
+    if plan.stale:
+        text += (f"; {plan.stale} of them replaced runs computed by other code "
+                 "(--reuse-stale keeps such runs)")
+    if plan.reused_stale:
+        text += f"; {plan.reused_stale} runs by other code reused (--reuse-stale)"
+    if plan.elsewhere:
+        text += f"; {plan.elsewhere} computed meanwhile by another sweep on this store"
+    return text
 
 
 def _interrupt(signum, frame):
@@ -125,16 +141,35 @@ def _check_parallel(args) -> str:
     return backend
 
 
+def _recover(tracker, journal, quiet: bool) -> None:
+    """Replay what dead sweeps left in the journal, before anything is planned."""
+    from .runner import replay_journal
+
+    replayed = replay_journal(tracker, journal)
+    if replayed:
+        _say(f"replayed {replayed} result(s) from {journal.folder} into {tracker.uri}: an earlier "
+             "sweep computed them but could not log them", quiet)
+
+
 def run_sweeps(sweeps, args, tracker) -> tuple[list, int]:
     """Plan ``sweeps`` against ``tracker``, run what is missing, print the outcome.
 
     Returns the plans and the exit code: 0, 1 when a run failed, 130 when
-    interrupted (every run logged so far is kept).
+    interrupted (every run logged so far is kept). A store failure raises
+    :class:`StoreError` (exit 3) after the computed results are journaled.
     """
+    from .journal import Journal
     from .runner import plan_sweeps, run_plans
 
     backend = _check_parallel(args)
-    plans = plan_sweeps(sweeps, tracker, rerun_failed=args.rerun_failed, force=args.force)
+    journal = Journal()
+    _recover(tracker, journal, args.quiet)
+    plans = plan_sweeps(sweeps, tracker, rerun_failed=args.rerun_failed, force=args.force,
+                        reuse_stale=args.reuse_stale)
+    zombies = sum(plan.zombies for plan in plans)
+    if zombies:
+        _say(f"closed {zombies} run(s) left RUNNING by sweeps that died, as KILLED; "
+             "their configs are computed again", args.quiet)
     for plan in plans:
         if not plan.todo:
             _say(_nothing_to_do(plan, tracker.uri), args.quiet)
@@ -148,7 +183,7 @@ def run_sweeps(sweeps, args, tracker) -> tuple[list, int]:
     previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill` stops as cleanly as Ctrl-C
     try:
         run_plans(plans, tracker, jobs=args.jobs, backend=backend, scheduler=args.scheduler,
-                  artifacts=not args.no_artifacts, reporter=reporter)
+                  artifacts=not args.no_artifacts, reporter=reporter, journal=journal)
     except KeyboardInterrupt:
         print("mpe3d: interrupted; every run logged so far is kept: run the same command "
               "to resume", file=sys.stderr)
@@ -156,16 +191,13 @@ def run_sweeps(sweeps, args, tracker) -> tuple[list, int]:
     finally:
         signal.signal(signal.SIGTERM, previous)
     for plan in plans:
-        name = plan.sweep.name
         if plan.todo:
-            _say(f"{name}: {plan.counts['FINISHED']} finished, {plan.counts['FAILED']} failed, "
-                 f"{plan.skipped} skipped (already tracked) of {len(plan.sweep.runs)} runs",
-                 args.quiet)
+            _say(_outcome(plan), args.quiet)
         for label, error in plan.failures[:5]:
             print(f"mpe3d: run failed: {label}: {error}", file=sys.stderr)
         if len(plan.failures) > 5:
             print(f"mpe3d: ... and {len(plan.failures) - 5} more failed runs "
-                  f"(`mpe3d runs '{name}'` lists them)", file=sys.stderr)
+                  f"(`mpe3d runs '{plan.sweep.name}'` lists them)", file=sys.stderr)
     _say(f"{time.time() - start:.1f} s; tracked in {tracker.uri} "
          f"(`mpe3d runs NAME` prints a table, `mpe3d ui` opens the MLflow UI)", args.quiet)
     return plans, 1 if any(plan.failures for plan in plans) else 0
@@ -174,7 +206,8 @@ def run_sweeps(sweeps, args, tracker) -> tuple[list, int]:
 def cmd_sweep(args) -> int:
     from .sweep import load_sweep
 
-    sweeps = [load_sweep(path, args.scale) for path in args.files]  # all valid before any run
+    sweeps = [load_sweep(path, args.scale, args.max_runs, args.max_yaml_mb)
+              for path in args.files]  # all valid before any run
     _check_parallel(args)
     if args.dry_run:
         return _dry_run(sweeps)
@@ -191,7 +224,7 @@ def _runs_table(frame, all_params: bool):
     shown = params if all_params else [c for c in params if frame[c].nunique(dropna=False) > 1]
     metrics = [c for c in (*METRIC_KEYS, "wall_s") if c in frame.columns]
     table = frame.sort_values(shown + ["start_time"]) if shown else frame.sort_values("start_time")
-    columns = ["status", *shown, *metrics, "config_hash"]
+    columns = ["status", *shown, *metrics, "config_hash", "code"]
     if (table["status"] != "FINISHED").any():
         columns.append("error")
     return table[columns]
@@ -200,11 +233,16 @@ def _runs_table(frame, all_params: bool):
 def cmd_runs(args) -> int:
     from .tracking import Tracker
 
-    frame = Tracker(args.tracking_uri, create=False).runs_frame(args.experiment, history=args.history)
+    tracker = Tracker(args.tracking_uri, create=False)
+    frame = tracker.runs_frame(args.experiment, history=args.history)
     if frame.empty:
         print(f"mpe3d: experiment '{args.experiment}' has no runs yet", file=sys.stderr)
         return 0
     table = _runs_table(frame, args.all)
+    codes = frame["code"].unique()
+    if len(codes) > 1:
+        print(f"mpe3d: note: these runs were computed by {len(codes)} versions of the code "
+              f"(column code); this code is {tracker.code}", file=sys.stderr)
     if args.format == "csv":
         print(table.to_csv(index=False), end="")
     else:
@@ -245,7 +283,8 @@ def cmd_report(args) -> int:
     if args.sweep:
         from .sweep import load_sweep
 
-        section = _sweep_section(load_sweep(args.sweep, args.scale), tracker)
+        section = _sweep_section(load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb),
+                                 tracker)
     else:
         known = {s.name: s for s in map(_load_paper_sweep, _paper_sweep_files())}
         sweep = known.get(args.experiment)
@@ -281,7 +320,7 @@ def _write_report(out: Path, sections, title, facts):
 def cmd_reproduce(args) -> int:
     import platform
 
-    from . import __version__
+    from .identity import git_commit
     from .tracking import Tracker
 
     start = time.time()
@@ -299,7 +338,8 @@ def cmd_reproduce(args) -> int:
     facts = [f"Scale {args.scale}; {sum(len(s.runs) for s in sweeps)} runs in "
              f"{len(sweeps)} experiments: {ran} run now, {reused} reused from {tracker.uri}; "
              f"wall time for the runs {run_wall:.1f} s on {os.cpu_count()} cores "
-             f"({platform.node()}, mpe3d {__version__}).",
+             f"({platform.node()}, mpe3d {tracker.code}"
+             + (f", git {git_commit()}" if git_commit() else "") + ").",
              "Methods: 'baseline (MDS)' and '3DMPE (paper)' are the paper's baseline and its SGD, "
              "implemented faithfully; 'ours (refine)' is mpe3d's exact solver, not the paper's. "
              "CD and EMD are 100 × mean distances after a rigid alignment, the scale of the authors' "
@@ -312,21 +352,20 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from .reconstruct import check_output, reconstruct, write_cloud
+    from .reconstruct import check_ids_fit, check_output, prepare, solve, write_result
 
-    out = check_output(args.out)  # before any work, not after it
-    report = Path(args.report) if args.report else None
-    if report is not None and report.suffix.lower() != ".json":
-        raise MpeError(f"--report {report}: expected a .json file")
-    result = reconstruct(args.input, projections=args.projections, solver=args.solver,
-                         loss=args.loss, random_state=args.seed)
-    write_cloud(out, result.points, result.ids)
+    if args.seed < 0:
+        raise MpeError(f"--seed: expected an integer >= 0, got {args.seed}")
+    out = check_output(args.out)  # every output path before any work, not after it
+    report = check_output(args.report, "--report", (".json",)) if args.report else None
+    if report is not None and report.resolve() == out.resolve():
+        raise MpeError(f"--report {report}: the same file as --out")
+    problem = prepare(args.input, projections=args.projections, solver=args.solver,
+                      loss=args.loss, random_state=args.seed)
+    check_ids_fit(out, problem.ids)
+    result = solve(problem)
+    write_result(out, result, report, {"input": str(args.input), "output": str(out)})
     summary = result.report
-    if report is not None:
-        from .reconstruct import atomic_write
-
-        text = json.dumps({"input": str(args.input), "output": str(out), **summary}, indent=1)
-        atomic_write(report, lambda temp: Path(temp).write_text(text))
     worst = max(summary["rms_residual_per_view"])
     print(f"{summary['points']} points from {summary['views']} views ({summary['setting']} "
           f"projections, {summary['solver']}): stress {summary['stress']:.3g}, worst view RMS "
@@ -374,9 +413,27 @@ def _add_run_options(parser) -> None:
                         help="MLflow store (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
     parser.add_argument("--rerun-failed", action="store_true", help="retry runs that FAILED before")
     parser.add_argument("--force", action="store_true", help="rerun every run, even FINISHED ones")
+    parser.add_argument("--reuse-stale", action="store_true",
+                        help="reuse FINISHED runs computed by other code (by default a run counts "
+                        "as done only when the code that computed it is this code)")
     parser.add_argument("--no-artifacts", action="store_true",
                         help="do not store reconstruction.ply and ground_truth.ply")
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
+
+
+def _add_yaml_limit(parser) -> None:
+    from .limits import MAX_YAML_MB
+
+    parser.add_argument("--max-yaml-mb", type=float, default=MAX_YAML_MB, metavar="MB",
+                        help=f"refuse YAML files larger than this (default {MAX_YAML_MB:g} MiB)")
+
+
+def _add_sweep_limits(parser) -> None:
+    from .limits import MAX_RUNS
+
+    parser.add_argument("--max-runs", type=int, default=MAX_RUNS, metavar="N",
+                        help=f"refuse a sweep that expands to more runs (default {MAX_RUNS:,})")
+    _add_yaml_limit(parser)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -391,6 +448,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", metavar="FILE.yaml", help="YAML file of keys (overrides win)")
     run.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     run.add_argument("--out", metavar="DIR", help="write ground_truth.ply, reconstruction.ply and a PNG")
+    _add_yaml_limit(run)
     run.set_defaults(func=cmd_run)
     sweep = sub.add_parser("sweep", help="run YAML sweeps, tracked in MLflow, resuming what is done",
                            description="Expand each sweep file into a grid of runs, skip the runs "
@@ -401,6 +459,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="one of the files' scales, e.g. quick (default: full, the file as written)")
     _add_run_options(sweep)
     sweep.add_argument("--dry-run", action="store_true", help="list the expanded runs and stop")
+    _add_sweep_limits(sweep)
     sweep.set_defaults(func=cmd_sweep)
     reproduce = sub.add_parser(
         "reproduce-paper", help="run every experiment of the paper (resuming) and render its "
@@ -424,6 +483,7 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_argument("--scale", default="full", metavar="NAME", help="with --sweep (default: full)")
     report.add_argument("--out", required=True, metavar="DIR", help="report folder")
     report.add_argument("--tracking-uri", metavar="URI")
+    _add_sweep_limits(report)
     report.set_defaults(func=cmd_report)
     runs = sub.add_parser("runs", help="print the runs of an experiment as a table")
     runs.add_argument("experiment", metavar="EXPERIMENT")
@@ -466,7 +526,7 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except MpeError as exc:
         print(f"mpe3d: error: {exc}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     except KeyboardInterrupt:
         print("mpe3d: interrupted", file=sys.stderr)
         return 130

@@ -150,39 +150,60 @@ def parse_override(text: str) -> tuple[str, Any]:
     return key.strip(), value
 
 
-def _key_lines(node, prefix: str = "", out: dict[str, int] | None = None) -> dict[str, int]:
+_MAX_NODES = 1_000_000  # YAML aliases can make a small file a huge tree ("billion laughs")
+# PyYAML's C parser where it was built with libyaml: several times faster.
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def _key_lines(node, path: Path, prefix: str = "", out: dict[str, int] | None = None,
+               budget: list[int] | None = None) -> dict[str, int]:
     """Dotted path -> the 1-based line where it stands in a composed YAML node.
 
     Mapping keys give ``a.b``; list items give ``a.b[2]`` (so an error can
-    point at the one bad value of a list written over several lines).
+    point at the one bad value of a list written over several lines). A key
+    written twice in one mapping, or once nested and once dotted, is an error
+    naming both lines: YAML would silently keep the last.
     """
     out = {} if out is None else out
+    budget = [_MAX_NODES] if budget is None else budget
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise MpeError(f"{path}: the YAML expands to over {_MAX_NODES:,} values (aliases?)")
     if isinstance(node, yaml.MappingNode):
         for key_node, value_node in node.value:
             dotted = f"{prefix}{key_node.value}"
-            out[dotted] = key_node.start_mark.line + 1
-            _key_lines(value_node, dotted + ".", out)
+            line = key_node.start_mark.line + 1
+            if dotted in out and key_node.value != "<<":
+                raise MpeError(f"duplicate key '{dotted}' at {path}:{line} "
+                               f"(first at line {out[dotted]})", key=dotted)
+            out[dotted] = line
+            _key_lines(value_node, path, dotted + ".", out, budget)
     elif isinstance(node, yaml.SequenceNode):
         for i, item in enumerate(node.value):
-            path = f"{prefix[:-1]}[{i}]"
-            out[path] = item.start_mark.line + 1
-            _key_lines(item, path + ".", out)
+            item_path = f"{prefix[:-1]}[{i}]"
+            out[item_path] = item.start_mark.line + 1
+            _key_lines(item, path, item_path + ".", out, budget)
     return out
 
 
-def load_yaml(path: str | Path, what: str = "config file") -> tuple[Any, dict[str, int]]:
+def load_yaml(path: str | Path, what: str = "config file",
+              max_mb: float | None = None) -> tuple[Any, dict[str, int]]:
     """Parse one YAML document: its data, and the line of every key and list item."""
+    from .limits import check_yaml_size
+
     path = Path(path)
     try:
-        text = path.read_text()
+        check_yaml_size(path, what, max_mb)
+        text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
-        raise MpeError(f"{what} {path} is not a text file") from None
+        raise MpeError(f"{what} {path} is not a UTF-8 text file") from None
     except OSError as exc:
         raise MpeError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
     try:
-        loader = yaml.SafeLoader(text)  # one parse gives both the values and their lines
+        loader = _LOADER(text)  # one parse gives both the values and their lines
         try:
             node = loader.get_single_node()
+            lines = _key_lines(node, path)
             data = loader.construct_document(node) if node is not None else None
         finally:
             loader.dispose()
@@ -191,12 +212,14 @@ def load_yaml(path: str | Path, what: str = "config file") -> tuple[Any, dict[st
         where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
         problem = getattr(exc, "problem", None) or "malformed YAML"
         raise MpeError(f"malformed YAML at {where}: {problem}") from None
-    return data, _key_lines(node)
+    except RecursionError:
+        raise MpeError(f"{what} {path}: nested too deeply") from None
+    return data, lines
 
 
-def read_yaml(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
+def read_yaml(path: str | Path, max_mb: float | None = None) -> tuple[dict[str, Any], dict[str, int]]:
     """A YAML run config (nested or dotted keys) as a flat dict, and each key's line."""
-    data, lines = load_yaml(path)
+    data, lines = load_yaml(path, max_mb=max_mb)
     if data is None:
         return {}, {}
     if not isinstance(data, Mapping):
@@ -204,13 +227,14 @@ def read_yaml(path: str | Path) -> tuple[dict[str, Any], dict[str, int]]:
     return flatten(data), lines
 
 
-def config_from_file(path: str | Path, overrides: Mapping[str, Any] | None = None) -> RunConfig:
+def config_from_file(path: str | Path, overrides: Mapping[str, Any] | None = None,
+                     max_mb: float | None = None) -> RunConfig:
     """A run config from a YAML file, with ``overrides`` on top.
 
     The file is validated on its own first, so an error in it names
     ``file:line``.
     """
-    values, lines = read_yaml(path)
+    values, lines = read_yaml(path, max_mb)
     try:
         make_config(values)
     except MpeError as exc:

@@ -14,8 +14,10 @@ class MpeError(Exception):
     caller who read the key from a file can say where it stands; ``hint`` is a
     trailing suggestion such as `` (did you mean 'views'?)``, kept apart so the
     location goes before it. The CLI prints the message to stderr and exits
-    with code 2, without a traceback.
+    with ``exit_code`` (2, bad input), without a traceback.
     """
+
+    exit_code = 2
 
     def __init__(self, message: str, key: str | None = None, hint: str = ""):
         super().__init__(message + hint)
@@ -24,6 +26,13 @@ class MpeError(Exception):
     def located(self, where: str) -> "MpeError":
         """The same error, saying where it stands: ``... at file.yaml:7 (did you mean ...)``."""
         return MpeError(f"{self.message} at {where}", key=self.key, hint=self.hint)
+
+
+class StoreError(MpeError):
+    """The tracking store failed or cannot be reached: not the user's input
+    (exit code 3). Results computed meanwhile stay in the local journal."""
+
+    exit_code = 3
 
 
 def suggest(name: str, candidates) -> str:

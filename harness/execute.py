@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 import solvers
 from solvers.degenerate import DegenerateWarning
@@ -19,9 +20,16 @@ from solvers.degenerate import DegenerateWarning
 from . import metrics as metrics_mod
 from .config import RunConfig
 from .errors import MpeError
+from .identity import code_identity
+from .limits import check_run_memory
 from .observe import Scene, build_scene, observe, seed_streams
 
 METRIC_KEYS = ("cd", "cd_mean", "emd", "emd_mean", "roa", "stress", "iterations", "runtime_s")
+# BLAS sums in another order with another thread count, which moves results by
+# an ulp or more; one thread everywhere (CLI, sweep parent, loky and dask
+# workers) makes every run bit-identical wherever it runs. Sweeps get their
+# parallelism from running several runs at once.
+BLAS_THREADS = 1
 
 
 @dataclass
@@ -50,6 +58,12 @@ class RunResult:
 
 def run(config: RunConfig) -> RunResult:
     """Run ``config``; the solver only ever sees the observations."""
+    check_run_memory(config)  # before sampling: refuse what cannot fit, in one line
+    with threadpool_limits(limits=BLAS_THREADS):
+        return _run(config)
+
+
+def _run(config: RunConfig) -> RunResult:
     start = time.perf_counter()
     streams = seed_streams(config["seed"])
     scene = build_scene(config, streams)
@@ -78,13 +92,17 @@ class RunRecord:
     """What a sweep worker sends back to the parent: small, picklable, no mesh.
 
     A run that raised is a record too (``status="FAILED"``, with the error),
-    so one bad grid point never stops a sweep.
+    so one bad grid point never stops a sweep. ``code`` is the identity of the
+    code that computed it (the worker's own, which on a cluster may differ
+    from the parent's).
     """
 
-    config: RunConfig
+    config_hash: str
+    params: dict[str, Any]  # the flat config, as logged
     status: str  # FINISHED or FAILED, as MLflow names them
     start_ms: int
     end_ms: int
+    code: str
     metrics: dict[str, float] = field(default_factory=dict)
     stress_history: np.ndarray | None = None
     facts: dict[str, str] = field(default_factory=dict)
@@ -92,6 +110,27 @@ class RunRecord:
     reconstruction: np.ndarray | None = None  # aligned to the truth
     error: str = ""
     traceback: str = ""
+
+
+_ARRAY_FIELDS = ("stress_history", "truth", "reconstruction")
+
+
+def record_fields(record: RunRecord) -> dict[str, Any]:
+    """A record's JSON-able fields (its arrays go elsewhere: the journal's .npz)."""
+    return {k: v for k, v in vars(record).items() if k not in _ARRAY_FIELDS}
+
+
+def record_from_fields(fields: dict[str, Any], arrays: dict[str, np.ndarray]) -> RunRecord:
+    return RunRecord(**fields, **{k: arrays.get(k) for k in _ARRAY_FIELDS})
+
+
+def failed_record(config: RunConfig, error: str, trace: str = "", start: float | None = None,
+                  facts: dict[str, str] | None = None) -> RunRecord:
+    """The record of a run that raised, or whose worker died."""
+    now = time.time()
+    return RunRecord(config_hash=config.hash(), params=config.flat(), code=code_identity(),
+                     status="FAILED", start_ms=int((start or now) * 1000), end_ms=int(now * 1000),
+                     facts=facts or {}, error=error, traceback=trace)
 
 
 def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
@@ -102,15 +141,15 @@ def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
         result = run(config)
     except Exception as exc:  # noqa: BLE001 - any failure is this run's result, not the sweep's
         message = str(exc) if isinstance(exc, MpeError) else f"{type(exc).__name__}: {exc}"
-        return RunRecord(config=config, status="FAILED", start_ms=int(start * 1000),
-                         end_ms=int(time.time() * 1000), facts=worker,
-                         error=message or type(exc).__name__, traceback=traceback.format_exc())
+        return failed_record(config, message or type(exc).__name__, traceback.format_exc(),
+                             start, worker)
+    who = {"config_hash": config.hash(), "params": config.flat(), "code": code_identity()}
     recon = result.reconstruction
     facts = {**worker, "termination": recon.termination,
              "visible_per_view": ",".join(map(str, result.scene.visible_per_view))}
     if result.facts.get("warnings"):
         facts["warnings"] = " | ".join(result.facts["warnings"])
-    return RunRecord(config=config, status="FINISHED", start_ms=int(start * 1000),
+    return RunRecord(**who, status="FINISHED", start_ms=int(start * 1000),
                      end_ms=int(time.time() * 1000),
                      metrics={**result.metrics, "wall_s": result.wall_s},
                      stress_history=np.asarray(recon.stress_history, dtype=float), facts=facts,

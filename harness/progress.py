@@ -19,8 +19,11 @@ class RichReporter(Reporter):
         self.skipped = 0
 
     def _fields(self) -> str:
-        return (f"[green]✓ {self.counts['FINISHED']}[/]  [red]✗ {self.counts['FAILED']}[/]  "
+        text = (f"[green]✓ {self.counts['FINISHED']}[/]  [red]✗ {self.counts['FAILED']}[/]  "
                 f"↷ {self.skipped} skipped")
+        if self.counts.get("ELSEWHERE"):  # computed by a concurrent sweep
+            text += f"  ⇄ {self.counts['ELSEWHERE']} by another sweep"
+        return text
 
     def start(self, total: int, skipped: int) -> None:
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,

@@ -15,8 +15,9 @@ matrices, 2x3 with orthonormal rows or 3x3 rotations, in view order.
 
 from __future__ import annotations
 
+import csv
 import json
-import os
+import tempfile
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -30,6 +31,7 @@ from solvers import Observations, View
 from solvers.degenerate import DegenerateWarning
 
 from .errors import MpeError
+from .files import atomic_write, write_together
 
 INPUT_FORMATS = (".csv", ".npz", ".json")
 OUTPUT_FORMATS = (".ply", ".csv", ".npy")
@@ -52,9 +54,12 @@ class Result:
 
 def _finite(values: np.ndarray, where: str, what: str) -> np.ndarray:
     try:
-        values = np.asarray(values, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise MpeError(f"{where}: {what} holds a non-numeric value") from None
+        values = np.asarray(values)
+    except ValueError:  # ragged nested lists
+        raise MpeError(f"{where}: {what} rows differ in length") from None
+    if values.dtype.kind not in "iuf":  # text, booleans, complex, objects: never numbers here
+        raise MpeError(f"{where}: {what} holds a non-numeric value ({values.dtype})")
+    values = values.astype(np.float64)
     bad = ~np.isfinite(values)
     if bad.any():
         row = int(np.argwhere(bad)[0][0])
@@ -62,15 +67,26 @@ def _finite(values: np.ndarray, where: str, what: str) -> np.ndarray:
     return values
 
 
+def _check_header(path: Path) -> None:
+    """pandas renames a repeated column (``x``, ``x.1``) and reads the first: refuse instead."""
+    with open(path, newline="", encoding="utf-8") as handle:
+        header = [name.strip() for name in next(csv.reader(handle), [])]
+    for i, name in enumerate(header):
+        if name in header[:i]:
+            raise MpeError(f"{path}: the header names column '{name}' twice "
+                           f"(columns {header.index(name) + 1} and {i + 1})")
+
+
 def _read_csv(path: Path) -> list[dict]:
     import pandas as pd
 
     try:
+        _check_header(path)
         frame = pd.read_csv(path, dtype={"view": str, "point": str}, keep_default_na=False)
     except pd.errors.EmptyDataError:
         raise MpeError(f"{path}: empty file") from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise MpeError(f"{path}: not a CSV file ({str(exc).splitlines()[0]})") from None
+    except (pd.errors.ParserError, UnicodeDecodeError, csv.Error) as exc:
+        raise MpeError(f"{path}: not a UTF-8 CSV file ({str(exc).splitlines()[0]})") from None
     frame.columns = [str(c).strip() for c in frame.columns]
     for column in ("view", "point", "x", "y"):
         if column not in frame.columns:
@@ -110,20 +126,58 @@ def _view_from_arrays(arrays, name: str, where: str) -> dict:
     return view
 
 
-def _read_npz(path: Path) -> list[dict]:
+def _npz_members(path: Path) -> dict[str, np.ndarray]:
+    """Every array of an NPZ file, read now: a truncated member, a bad CRC or an
+    object array fails here, naming the member, not later inside a solver."""
+    import zipfile
+
+    from solvers.base import require_memory
+
     try:
-        data = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        if path.stat().st_size == 0:
-            raise MpeError(f"{path}: empty file") from None
-        raise MpeError(f"{path}: not an NPZ file ({exc})") from None
-    names = sorted({key.split("_", 1)[0] for key in data.files if "_" in key},
+        archive = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
+        raise MpeError(f"{path}: not an NPZ file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+    members = {}
+    with archive:
+        for name in archive.files:
+            try:
+                require_memory(_declared_bytes(archive.zip, name), f"{path}: member '{name}'")
+                members[name] = archive[name]
+            except MpeError:
+                raise
+            except ValueError as exc:
+                reason = "holds Python objects, which are never unpickled" \
+                    if "allow_pickle" in str(exc) else str(exc).splitlines()[0]
+                raise MpeError(f"{path}: member '{name}' {reason}") from None
+            except MemoryError:
+                raise MpeError(f"{path}: member '{name}' does not fit in memory") from None
+            except Exception as exc:  # noqa: BLE001 - zlib, zipfile, EOF: a damaged archive
+                raise MpeError(f"{path}: member '{name}' cannot be read (damaged or truncated: "
+                               f"{type(exc).__name__})") from None
+    return members
+
+
+def _declared_bytes(archive, name: str) -> int:
+    """The size a member's .npy header declares, read before its data."""
+    try:
+        with archive.open(name + ".npy") as handle:
+            read = {(1, 0): np.lib.format.read_array_header_1_0,
+                    (2, 0): np.lib.format.read_array_header_2_0}[np.lib.format.read_magic(handle)]
+            shape, _, dtype = read(handle)
+    except Exception:  # noqa: BLE001 - reading the member itself will say what is wrong
+        return 0
+    return int(np.prod(shape, dtype=np.float64) * dtype.itemsize)
+
+
+def _read_npz(path: Path) -> list[dict]:
+    data = _npz_members(path)
+    names = sorted({key.split("_", 1)[0] for key in data if "_" in key},
                    key=lambda v: (len(v), v))
     if not names:
-        if set(data.files) & {"ids", "xy", "dist"}:  # one view per file, inside a folder
+        if set(data) & {"ids", "xy", "dist"}:  # one view per file, inside a folder
             return [_view_from_arrays(data, path.stem, str(path))]
         raise MpeError(f"{path}: empty file (no view<k>_ids arrays)")
-    return [_view_from_arrays({key.split("_", 1)[1]: data[key] for key in data.files
+    return [_view_from_arrays({key.split("_", 1)[1]: data[key] for key in data
                                if key.startswith(f"{name}_")}, name, f"{path}: {name}")
             for name in names]
 
@@ -138,21 +192,57 @@ def _read_folder(path: Path) -> list[dict]:
     return views
 
 
+def _json_ids(value, where: str) -> list:
+    if not isinstance(value, list) or not all(
+            isinstance(v, (int, str)) and not isinstance(v, bool) for v in value):
+        raise MpeError(f"{where}: ids must be a list of integers or strings")
+    return value
+
+
+def _json_matrix(value, where: str, what: str) -> np.ndarray:
+    """A list of equal-length rows of numbers (``null`` becomes NaN, caught later)."""
+    if not isinstance(value, list):
+        raise MpeError(f"{where}: {what} must be a list of rows")
+    for row_index, row in enumerate(value):
+        if not isinstance(row, list):
+            raise MpeError(f"{where}: {what} row {row_index} is not a list")
+        if len(row) != len(value[0]):
+            raise MpeError(f"{where}: {what} row {row_index} has {len(row)} entries, "
+                           f"row 0 has {len(value[0])}")
+        for item in row:
+            if isinstance(item, bool) or not isinstance(item, (int, float, type(None))):
+                kind = "true/false" if isinstance(item, bool) else type(item).__name__
+                raise MpeError(f"{where}: {what} holds a non-numeric value (row {row_index}: {kind})")
+    try:
+        return np.array(value, dtype=np.float64)
+    except OverflowError:
+        raise MpeError(f"{where}: {what} holds a number too large for a float") from None
+
+
 def _read_json(path: Path) -> list[dict]:
-    text = path.read_text()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise MpeError(f"{path}: not a UTF-8 text file") from None
     if not text.strip():
         raise MpeError(f"{path}: empty file")
     try:
         data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise MpeError(f"{path}: malformed JSON at line {exc.lineno}: {exc.msg}") from None
+    except RecursionError:
+        raise MpeError(f"{path}: JSON nested too deeply") from None
     if not isinstance(data, dict) or not isinstance(data.get("views"), list):
         raise MpeError(f"{path}: expected an object with a list 'views'")
     views = []
     for k, item in enumerate(data["views"]):
+        where = f"{path}: view '{k}'"
         if not isinstance(item, dict):
-            raise MpeError(f"{path}: view {k}: expected an object with 'ids' and 'xy' or 'dist'")
-        views.append(_view_from_arrays(item, str(k), f"{path}: view {k}"))
+            raise MpeError(f"{where}: expected an object with 'ids' and 'xy' or 'dist'")
+        arrays = {key: _json_matrix(item[key], where, key) for key in ("xy", "dist") if key in item}
+        if "ids" in item:
+            arrays["ids"] = np.asarray(_json_ids(item["ids"], where), dtype=object).astype(str)
+        views.append(_view_from_arrays(arrays, str(k), where))
     return views
 
 
@@ -163,6 +253,8 @@ def read_views(path: str | Path) -> list[dict]:
         return _read_folder(path)
     if not path.exists():
         raise MpeError(f"{path}: no such file")
+    if not path.is_file():
+        raise MpeError(f"{path}: not a regular file")
     readers = {".csv": _read_csv, ".npz": _read_npz, ".json": _read_json}
     reader = readers.get(path.suffix.lower())
     if reader is None:
@@ -185,8 +277,10 @@ def read_projections(path: str | Path) -> np.ndarray:
             else json.loads(path.read_text())
     except OSError as exc:
         raise MpeError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    except (ValueError, json.JSONDecodeError) as exc:
-        raise MpeError(f"{path}: not a {path.suffix} array file ({exc})") from None
+    except (ValueError, EOFError) as exc:
+        raise MpeError(f"{path}: not a {path.suffix} array file ({str(exc).splitlines()[0] if str(exc) else 'truncated'})") from None
+    except RecursionError:
+        raise MpeError(f"{path}: JSON nested too deeply") from None
     mats = []
     for k, m in enumerate(data if isinstance(data, list) or np.ndim(data) == 3 else [data]):
         m = _finite(m, f"{path}: projection {k}", "matrix")
@@ -259,19 +353,88 @@ def observations_from(views: Sequence[dict], projections=None, source: str = "in
             D = _check_dist(np.asarray(view["dist"]), len(ids), where)
             out.append(View(ids=rows, distances=D))
     obs = Observations(n_points=len(all_ids), views=tuple(out), projections=projections)
-    return obs, _as_ids(all_ids)
+    return obs, _as_ids(all_ids, source)
 
 
-def _as_ids(labels: np.ndarray) -> np.ndarray:
+def _as_ids(labels: np.ndarray, source: str) -> np.ndarray:
     """Integer ids back to integers; anything else stays text."""
     try:
         numbers = labels.astype(np.int64)
     except ValueError:
         return labels
+    except OverflowError:
+        big = next(label for label in labels if _overflows(label))
+        raise MpeError(f"{source}: point id '{big}' is an integer too large for 64 bits; "
+                       "use ids below 2**63, or text ids") from None
     return numbers if np.array_equal(numbers.astype(str), labels) else labels
 
 
+def _overflows(label: str) -> bool:
+    try:
+        return abs(int(label)) >= 2 ** 63
+    except ValueError:
+        return False
+
+
 # -- solving -------------------------------------------------------------------
+
+@dataclass
+class Problem:
+    """User input, read and checked: what the solve needs, nothing computed yet."""
+
+    observations: Observations
+    ids: np.ndarray
+    solver: str
+    loss: str
+    random_state: Any
+
+
+def _check_random_state(random_state) -> None:
+    if isinstance(random_state, np.random.Generator):
+        return
+    if isinstance(random_state, bool) or not isinstance(random_state, (int, np.integer)) \
+            or random_state < 0:
+        raise MpeError(f"random_state (--seed): expected an integer >= 0 or a numpy Generator, "
+                       f"got {random_state!r}")
+
+
+def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
+            loss: str = "l2", random_state=0) -> Problem:
+    """Read and check every input of :func:`reconstruct` without solving anything."""
+    if solver not in SOLVERS:
+        raise MpeError(f"--solver: '{solver}' is not one of {', '.join(SOLVERS)}")
+    if loss != "l2" and solver != "refine":
+        raise MpeError(f"--loss {loss} needs --solver refine")
+    _check_random_state(random_state)
+    source = str(views) if isinstance(views, (str, Path)) else "views"
+    if isinstance(views, (str, Path)):
+        views = read_views(views)
+    projections_source = "projections"
+    if isinstance(projections, (str, Path)):
+        projections_source, projections = str(projections), read_projections(projections)
+    elif projections is not None:
+        projections = np.asarray(projections, dtype=float)[:, :2]
+    obs, ids = observations_from(views, projections, source, projections_source)
+    return Problem(obs, ids, solver, loss, random_state)
+
+
+def solve(problem: Problem) -> Result:
+    """Solve a prepared problem (paper Eq. 1) and report on the result."""
+    options = {"loss": problem.loss} if problem.solver == "refine" else {}
+    start = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:  # notes about the input go in the report
+        warnings.simplefilter("always", DegenerateWarning)
+        rec = solvers.solve(problem.solver, problem.observations,
+                            random_state=problem.random_state, **options)
+    runtime = time.perf_counter() - start
+    for w in caught:
+        if not issubclass(w.category, DegenerateWarning):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    report = _report(problem.observations, rec, problem.ids, problem.solver, problem.loss, runtime)
+    report["warnings"] = [str(w.message) for w in caught if issubclass(w.category, DegenerateWarning)]
+    return Result(points=rec.points, ids=problem.ids, projections=np.asarray(rec.projections),
+                  report=report)
+
 
 def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
                 loss: str = "l2", random_state=0) -> Result:
@@ -286,33 +449,9 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     solver : {"refine", "factorize", "sgd"}, default "refine"
     loss : {"l2", "huber"}, default "l2"
         refine's loss; huber tempers outlying distances or wrong matches.
-    random_state : int or Generator, default 0
+    random_state : int >= 0 or Generator, default 0
     """
-    source = str(views) if isinstance(views, (str, Path)) else "views"
-    if isinstance(views, (str, Path)):
-        views = read_views(views)
-    projections_source = "projections"
-    if isinstance(projections, (str, Path)):
-        projections_source, projections = str(projections), read_projections(projections)
-    elif projections is not None:
-        projections = np.asarray(projections, dtype=float)[:, :2]
-    if solver not in SOLVERS:
-        raise MpeError(f"--solver: '{solver}' is not one of {', '.join(SOLVERS)}")
-    obs, ids = observations_from(views, projections, source, projections_source)
-    options = {"loss": loss} if solver == "refine" else {}
-    if loss != "l2" and solver != "refine":
-        raise MpeError(f"--loss {loss} needs --solver refine")
-    start = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:  # notes about the input go in the report
-        warnings.simplefilter("always", DegenerateWarning)
-        rec = solvers.solve(solver, obs, random_state=random_state, **options)
-    runtime = time.perf_counter() - start
-    for w in caught:
-        if not issubclass(w.category, DegenerateWarning):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    report = _report(obs, rec, ids, solver, loss, runtime)
-    report["warnings"] = [str(w.message) for w in caught if issubclass(w.category, DegenerateWarning)]
-    return Result(points=rec.points, ids=ids, projections=np.asarray(rec.projections), report=report)
+    return solve(prepare(views, projections, solver, loss, random_state))
 
 
 def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, runtime: float) -> dict:
@@ -337,18 +476,6 @@ def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, run
 
 # -- writing -------------------------------------------------------------------
 
-def atomic_write(path: Path, write) -> None:
-    """``write(temp_path)``, then rename over ``path``: never a half-written file."""
-    path = Path(path)
-    temp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        write(temp)
-        os.replace(temp, path)
-    except BaseException:
-        temp.unlink(missing_ok=True)
-        raise
-
-
 def _ply(path: Path, points: np.ndarray, ids: np.ndarray) -> None:
     """Binary PLY with an ``id`` vertex property: an int, or for text ids a list of
     UTF-8 bytes padded with NULs to one length (so readers that expect equal
@@ -356,15 +483,11 @@ def _ply(path: Path, points: np.ndarray, ids: np.ndarray) -> None:
     n = len(points)
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if ids.dtype.kind in "iu":
-        if n and (ids.min() < -2 ** 31 or ids.max() >= 2 ** 31):
-            raise MpeError("point ids do not fit a PLY int; write .csv or .npy instead")
         id_property, values = "property int id", [ids.astype("<i4")]
         fields.append(("id", "<i4"))
     else:
         raw = np.char.encode(ids.astype(str), "utf-8")
         width = max(1, raw.dtype.itemsize)
-        if width > 255:
-            raise MpeError("point ids longer than 255 bytes do not fit a PLY list; write .csv or .npy")
         id_property, values = "property list uchar uchar id", [np.full(n, width, "u1"), raw]
         fields += [("length", "u1"), ("id", f"S{width}")]
     record = np.empty(n, dtype=fields)
@@ -378,34 +501,71 @@ def _ply(path: Path, points: np.ndarray, ids: np.ndarray) -> None:
         handle.write(record.tobytes())
 
 
-def check_output(path: str | Path) -> Path:
-    """``path`` if a cloud can be written there (a known extension, an existing folder)."""
+def check_output(path: str | Path, flag: str = "--out", formats=OUTPUT_FORMATS) -> Path:
+    """``path`` if a file of one of ``formats`` can be written there: checked by
+    creating (and removing) a file beside it, before any work is done."""
     path = Path(path)
-    if path.suffix.lower() not in OUTPUT_FORMATS:
-        raise MpeError(f"--out {path}: unknown output format '{path.suffix}' "
-                       f"(expected {', '.join(OUTPUT_FORMATS)})")
+    if path.is_dir():
+        raise MpeError(f"{flag} {path}: is a folder, not a file")
+    if path.suffix.lower() not in formats:
+        raise MpeError(f"{flag} {path}: unknown output format '{path.suffix}' "
+                       f"(expected {', '.join(formats)})")
+    if path.exists() and not path.is_file():
+        raise MpeError(f"{flag} {path}: not a regular file")
     if not path.parent.is_dir():
-        raise MpeError(f"--out {path}: folder {path.parent} does not exist")
+        raise MpeError(f"{flag} {path}: folder {path.parent} does not exist")
+    try:
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+            pass
+    except OSError as exc:
+        raise MpeError(f"{flag} {path}: cannot write in {path.parent} "
+                       f"({exc.strerror or exc})") from None
     return path
+
+
+def check_ids_fit(path: Path, ids: np.ndarray) -> None:
+    """PLY keeps ids as a 32-bit int or a list of at most 255 bytes: say so before solving."""
+    if Path(path).suffix.lower() != ".ply" or not len(ids):
+        return
+    if ids.dtype.kind in "iu" and (ids.min() < -2 ** 31 or ids.max() >= 2 ** 31):
+        raise MpeError(f"--out {path}: point ids beyond 2**31 do not fit a PLY int; "
+                       "write .csv or .npy instead")
+    if ids.dtype.kind not in "iu" and max(len(str(i).encode()) for i in ids) > 255:
+        raise MpeError(f"--out {path}: point ids longer than 255 bytes do not fit a PLY list; "
+                       "write .csv or .npy instead")
+
+
+def _cloud_writer(path: Path, points: np.ndarray, ids: np.ndarray):
+    """A function writing the cloud, by ``path``'s extension, to the file it is given."""
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
+        return lambda temp: _ply(temp, points, ids)
+    if suffix == ".csv":
+        import pandas as pd
+
+        frame = pd.DataFrame({"id": ids, "x": points[:, 0], "y": points[:, 1], "z": points[:, 2]})
+        return lambda temp: frame.to_csv(temp, index=False, float_format="%.17g")
+    record = np.empty(len(points), dtype=[("id", ids.dtype), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
+    record["id"], record["x"], record["y"], record["z"] = ids, *points.T
+
+    def save(temp):
+        with open(temp, "wb") as handle:  # np.save(path) would append .npy to the temp name
+            np.save(handle, record)
+    return save
 
 
 def write_cloud(path: str | Path, points: np.ndarray, ids: np.ndarray) -> Path:
     """The cloud as PLY, CSV or NPY (by extension), ids kept, written atomically."""
     path = check_output(path)
-    suffix = path.suffix.lower()
-    if suffix == ".ply":
-        atomic_write(path, lambda temp: _ply(temp, points, ids))
-    elif suffix == ".csv":
-        import pandas as pd
-
-        frame = pd.DataFrame({"id": ids, "x": points[:, 0], "y": points[:, 1], "z": points[:, 2]})
-        atomic_write(path, lambda temp: frame.to_csv(temp, index=False, float_format="%.17g"))
-    else:
-        record = np.empty(len(points), dtype=[("id", ids.dtype), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
-        record["id"], record["x"], record["y"], record["z"] = ids, *points.T
-
-        def save(temp):
-            with open(temp, "wb") as handle:  # np.save(path) would append .npy to the temp name
-                np.save(handle, record)
-        atomic_write(path, save)
+    check_ids_fit(path, ids)
+    atomic_write(path, _cloud_writer(path, points, ids))
     return path
+
+
+def write_result(out: Path, result: Result, report: Path | None = None, extra: dict | None = None) -> None:
+    """The cloud and, if asked, its JSON report: both, or neither."""
+    files = [(out, _cloud_writer(out, result.points, result.ids))]
+    if report is not None:
+        text = json.dumps({**(extra or {}), **result.report}, indent=1)
+        files.append((report, lambda temp: Path(temp).write_text(text)))
+    write_together(files)

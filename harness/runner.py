@@ -1,26 +1,44 @@
-"""Run sweeps: skip what is tracked, compute the rest in parallel, log as results arrive.
+"""Run sweeps: skip what is tracked, claim each run before computing it, log as results arrive.
 
-Workers (joblib's loky processes, or dask workers) compute whole runs and
-return :class:`~harness.execute.RunRecord` objects; the parent logs each one
-to MLflow the moment it arrives, so an interrupted sweep loses at most the
-runs in flight, and the next invocation resumes from the store.
+A run of a config is reused only when the code that computed it is the
+running code (:mod:`harness.identity`). Every config this sweep computes is
+first *claimed*: a RUNNING child run in the store, owned by this process and
+kept alive by a heartbeat on the sweep's parent run. Another sweep that meets
+the claim waits for it instead of computing the config again, and a claim
+whose owner died is closed as KILLED and computed anew.
+
+Workers (joblib's loky processes, dask workers, or one thread for
+``--jobs 1``) compute whole runs and return :class:`~harness.execute.RunRecord`
+objects. The parent writes each one to the local journal, then logs it to
+MLflow, then drops it from the journal: an interrupt, a crash or a store
+outage never loses a computed result, and the next invocation replays what
+the journal still holds before it plans anything.
 """
 
 from __future__ import annotations
 
+import concurrent.futures as cf
 import contextlib
 import logging
 import os
+import queue
+import random
+import threading
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
 from .config import RunConfig
-from .errors import MpeError
-from .execute import RunRecord, run_record
+from .errors import MpeError, StoreError
+from .execute import RunRecord, failed_record, run_record
+from .journal import Journal
+from .ownership import Heartbeat, Owner
 from .sweep import Sweep
 
 BACKENDS = ("loky", "dask")
+POLL_S = 2.0  # how often a sweep looks again at a claim of another sweep it waits for
+DRAIN_S = 10.0  # after the store fails: how long runs in flight may still finish
 log = logging.getLogger(__name__)
 
 
@@ -33,17 +51,23 @@ class Plan:
     todo: list[RunConfig]
     skipped_finished: int = 0
     skipped_failed: int = 0
+    reused_stale: int = 0  # FINISHED by other code, kept on purpose (--reuse-stale)
+    stale: int = 0  # of todo: FINISHED by other code, computed again
+    elsewhere: int = 0  # of todo: computed by another sweep while this one ran
+    zombies: int = 0  # runs of dead sweeps closed as KILLED when this plan was made
     parent_id: str | None = None
     counts: dict[str, int] = field(default_factory=lambda: {"FINISHED": 0, "FAILED": 0})
     failures: list[tuple[str, str]] = field(default_factory=list)  # (run label, error)
+    known: dict[str, set[str]] = field(default_factory=dict)  # hash -> run ids seen when planned
+    started: float = 0.0
 
     @property
     def skipped(self) -> int:
-        return self.skipped_finished + self.skipped_failed
+        return self.skipped_finished + self.skipped_failed + self.reused_stale
 
     @property
     def pending(self) -> int:
-        return len(self.todo) - sum(self.counts.values())
+        return len(self.todo) - sum(self.counts.values()) - self.elsewhere
 
 
 class Reporter:
@@ -56,37 +80,129 @@ class Reporter:
     def stop(self) -> None: ...
 
 
+def replay_journal(tracker, journal: Journal) -> int:
+    """Log into ``tracker`` the results dead sweeps left in ``journal``."""
+    replayed = 0
+    for entry in journal.orphans(tracker.uri):
+        replayed += tracker.replay(entry)
+        journal.remove(entry)
+    journal.tidy()
+    return replayed
+
+
 def plan_sweeps(sweeps: Iterable[Sweep], tracker, rerun_failed: bool = False,
-                force: bool = False) -> list[Plan]:
+                force: bool = False, reuse_stale: bool = False) -> list[Plan]:
     """Decide, per sweep, which runs still need computing.
 
-    A config whose hash already has a FINISHED run in the experiment is
-    skipped; one whose best run FAILED is skipped unless ``rerun_failed``.
-    ``force`` reruns everything. Sweeps sharing an experiment never run the
-    same config twice in one invocation.
+    First, RUNNING runs whose sweep died are closed as KILLED (counted in the
+    first plan of their experiment).
+
+    A config with a FINISHED run by the running code is skipped; one whose
+    best such run FAILED is skipped unless ``rerun_failed``; one FINISHED only
+    by other code is computed again unless ``reuse_stale``. ``force`` reruns
+    everything. Sweeps sharing an experiment never plan one config twice.
     """
     plans, planned = [], {}
     for sweep in sweeps:
         experiment_id = tracker.experiment_id(sweep.name)
-        tracked = {} if force else tracker.tracked(experiment_id)
-        seen = planned.setdefault(experiment_id, set())
         plan = Plan(sweep=sweep, experiment_id=experiment_id, todo=[])
+        if experiment_id not in planned:
+            plan.zombies = tracker.close_zombies(experiment_id)
+        tracked = tracker.tracked(experiment_id)
+        seen = planned.setdefault(experiment_id, set())
         for config in sweep.runs:
             key = config.hash()
-            status = tracked.get(key)
-            if status == "FINISHED" or key in seen:
+            entry = tracked.get(key)
+            status, stale = (entry.status, entry.stale) if entry and not force else (None, 0)
+            if key in seen or status == "FINISHED":
                 plan.skipped_finished += 1
             elif status == "FAILED" and not rerun_failed:
                 plan.skipped_failed += 1
+            elif stale and reuse_stale and status is None:
+                plan.reused_stale += 1
             else:
                 plan.todo.append(config)
+                plan.known[key] = entry.known if entry else set()
+                plan.stale += bool(stale) and status is None
                 seen.add(key)
         plans.append(plan)
     return plans
 
 
-def _task(index: int, config: RunConfig, keep_clouds: bool) -> tuple[int, RunRecord]:
-    return index, run_record(config, keep_clouds)
+# -- where runs compute -------------------------------------------------------------
+
+class _ThreadPool:
+    """``--jobs 1``: runs compute in this process, on one daemon thread, so the
+    loop keeps its heartbeat, its claims and its outage deadline meanwhile."""
+
+    capacity = 1
+
+    def __init__(self):
+        self._tasks: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._work, name="mpe3d-run", daemon=True).start()
+
+    def _work(self) -> None:
+        while (task := self._tasks.get()) is not None:
+            future, fn, args = task
+            if future.set_running_or_notify_cancel():
+                try:
+                    future.set_result(fn(*args))
+                except BaseException as exc:  # noqa: BLE001 - handed to the loop
+                    future.set_exception(exc)
+
+    def submit(self, fn, *args) -> cf.Future:
+        future: cf.Future = cf.Future()
+        self._tasks.put((future, fn, args))
+        return future
+
+    def close(self, abandon: bool) -> None:
+        self._tasks.put(None)
+
+
+class _LokyPool:
+    """Worker processes on this machine (joblib's loky executor)."""
+
+    def __init__(self, jobs: int):
+        from joblib.externals.loky import get_reusable_executor
+
+        workers = jobs if jobs > 0 else (os.cpu_count() or 1)
+        self.capacity = 2 * workers  # one queued behind each running: no worker waits for a claim
+        self.executor = get_reusable_executor(max_workers=workers)
+
+    def submit(self, fn, *args) -> cf.Future:
+        return self.executor.submit(fn, *args)
+
+    def close(self, abandon: bool) -> None:
+        if abandon:
+            self.executor.shutdown(wait=False, kill_workers=True)
+
+
+class _DaskPool:
+    """A dask cluster's workers; their futures are bridged to concurrent.futures."""
+
+    def __init__(self, client):
+        self.client = client
+        self.capacity = 2 * max(1, sum(client.nthreads().values()))
+        self._held: dict[int, object] = {}  # dask forgets a task whose future is dropped
+
+    def submit(self, fn, *args) -> cf.Future:
+        future: cf.Future = cf.Future()
+        task = self.client.submit(fn, *args, pure=False)
+        self._held[id(future)] = task
+
+        def done(task) -> None:
+            self._held.pop(id(future), None)
+            try:
+                future.set_result(task.result())
+            except BaseException as exc:  # noqa: BLE001 - a cancelled or killed task
+                future.set_exception(exc)
+        task.add_done_callback(done)
+        return future
+
+    def close(self, abandon: bool) -> None:
+        if abandon and self._held:
+            with contextlib.suppress(Exception):
+                self.client.cancel(list(self._held.values()))
 
 
 @contextlib.contextmanager
@@ -112,65 +228,200 @@ def _dask_client(jobs: int, scheduler: str | None):
         yield client
 
 
-def _records(tasks: list[tuple[int, RunConfig]], jobs: int, backend: str, scheduler: str | None,
-             keep_clouds: bool) -> Iterator[tuple[int, RunRecord]]:
-    from joblib import Parallel, delayed, parallel_config
-
-    calls = (delayed(_task)(i, config, keep_clouds) for i, config in tasks)
+@contextlib.contextmanager
+def _pool(jobs: int, backend: str, scheduler: str | None) -> Iterator:
     if backend == "dask":
-        with _dask_client(jobs, scheduler) as client, parallel_config(backend="dask"):
-            if sum(client.nthreads().values()) == 1:
-                log.warning("the dask cluster has one thread: joblib then runs every run in "
-                            "this process, not on the cluster")
-            yield from Parallel(n_jobs=-1, return_as="generator_unordered")(calls)
-    else:
-        yield from Parallel(n_jobs=jobs, backend="loky",
-                            return_as="generator_unordered")(calls)
+        with _dask_client(jobs, scheduler) as client:
+            yield _DaskPool(client)
+        return
+    pool = _ThreadPool() if jobs == 1 else _LokyPool(jobs)
+    try:
+        yield pool
+    finally:
+        pool.close(abandon=False)
+
+
+def _task(config: RunConfig, keep_clouds: bool) -> RunRecord:
+    return run_record(config, keep_clouds)
+
+
+# -- the run loop -----------------------------------------------------------------
+
+@dataclass
+class _Task:
+    plan: Plan
+    config: RunConfig
+    run_id: str | None = None  # our claim
+    next_look: float = 0.0  # when to look again at another sweep's claim
+
+
+class _Loop:
+    """Claim, compute, journal, log: one sweep invocation's runs."""
+
+    def __init__(self, plans, tracker, pool, journal: Journal, artifacts: bool, reporter: Reporter):
+        self.tracker, self.pool, self.journal = tracker, pool, journal
+        self.artifacts, self.reporter = artifacts, reporter
+        self.owner = Owner.current()
+        self.queue = deque(_Task(plan, config) for plan in plans for config in plan.todo)
+        self.in_flight: dict[cf.Future, _Task] = {}
+        self.waiting: list[_Task] = []  # claimed by another live sweep
+        self.open_parents = [p.parent_id for p in plans if p.parent_id]
+        self.foreign_code: set[str] = set()
+
+    def run(self, heartbeat: Heartbeat) -> None:
+        while self.queue or self.in_flight or self.waiting:
+            self._fill()
+            if self.in_flight:
+                done, _ = cf.wait(self.in_flight, timeout=POLL_S, return_when=cf.FIRST_COMPLETED)
+                for future in done:
+                    self._finish(future, self.in_flight.pop(future))
+            elif self.waiting:
+                time.sleep(min(POLL_S, max(0.0, min(t.next_look for t in self.waiting) - time.time())))
+            self._look_at_waiting()
+            if heartbeat.error is not None:
+                raise StoreError(f"tracking store {self.tracker.uri}: heartbeat failed: "
+                                 f"{str(heartbeat.error).splitlines()[0][:300]}")
+
+    def _fill(self) -> None:
+        while self.queue and len(self.in_flight) < self.pool.capacity:
+            task = self.queue.popleft()
+            plan, key = task.plan, task.config.hash()
+            state, other = self.tracker.claim(plan.experiment_id, plan.parent_id, key,
+                                              plan.sweep.label(task.config), self.owner,
+                                              plan.known[key])
+            if state == "won":
+                task.run_id = other
+                future = self.pool.submit(_task, task.config, self.artifacts)
+                self.in_flight[future] = task
+            elif state == "busy":
+                task.next_look = time.time() + POLL_S * random.uniform(0.5, 1.5)
+                self.waiting.append(task)
+            else:
+                self._done_elsewhere(task)
+
+    def _look_at_waiting(self) -> None:
+        now = time.time()
+        for task in [t for t in self.waiting if t.next_look <= now]:
+            plan = task.plan
+            state, _ = self.tracker.claim_state(plan.experiment_id, task.config.hash(),
+                                                plan.known[task.config.hash()])
+            if state == "busy":
+                task.next_look = now + POLL_S * random.uniform(0.5, 1.5)
+                continue
+            self.waiting.remove(task)
+            if state == "free":  # its owner died or withdrew: ours to claim
+                self.queue.appendleft(task)
+            else:
+                self._done_elsewhere(task)
+
+    def _done_elsewhere(self, task: _Task) -> None:
+        task.plan.elsewhere += 1
+        self.reporter.advance("ELSEWHERE")
+        self._close_if_done(task.plan)
+
+    def _meta(self, task: _Task) -> dict:
+        plan = task.plan
+        return {"uri": self.tracker.uri, "experiment": plan.sweep.name,
+                "experiment_id": plan.experiment_id, "parent_id": plan.parent_id,
+                "run_id": task.run_id, "run_name": plan.sweep.label(task.config),
+                "owner": self.owner.tag()}
+
+    def _record(self, future: cf.Future, task: _Task) -> RunRecord:
+        try:
+            return future.result()
+        except Exception as exc:  # noqa: BLE001 - a worker that died (OOM, segfault, killed)
+            return failed_record(task.config, f"its worker died: {type(exc).__name__}: {exc}")
+
+    def _finish(self, future: cf.Future, task: _Task) -> None:
+        record = self._record(future, task)
+        entry = self.journal.write(record, self._meta(task))  # on disk before the store
+        self.tracker.log_record(task.run_id, record, artifacts=self.artifacts)
+        self.journal.remove(entry)
+        plan = task.plan
+        plan.counts[record.status] += 1
+        if record.error:
+            plan.failures.append((plan.sweep.label(task.config), record.error))
+        if record.code != self.tracker.code and record.code not in self.foreign_code:
+            self.foreign_code.add(record.code)
+            log.warning("a worker runs other code (%s, not %s): its runs are tracked as such "
+                        "and will not count as done for this code", record.code, self.tracker.code)
+        self.reporter.advance(record.status)
+        self._close_if_done(plan)
+
+    def _close_if_done(self, plan: Plan) -> None:
+        if plan.pending == 0 and plan.parent_id in self.open_parents:
+            self.open_parents.remove(plan.parent_id)
+            _close(self.tracker, plan, "FINISHED")
+
+    def drain(self, error: StoreError) -> StoreError:
+        """The store failed: keep in the journal what finishes within DRAIN_S."""
+        deadline = time.monotonic() + DRAIN_S
+        while self.in_flight and time.monotonic() < deadline:
+            done, _ = cf.wait(self.in_flight, timeout=deadline - time.monotonic(),
+                              return_when=cf.FIRST_COMPLETED)
+            for future in done:
+                task = self.in_flight.pop(future)
+                self.journal.write(self._record(future, task), self._meta(task))
+        abandoned = len(self.in_flight)
+        self.pool.close(abandon=True)
+        kept = self.journal.pending(self.tracker.uri)
+        return StoreError(f"{error.message}; stopped: {kept} computed result(s) wait in "
+                          f"{self.journal.folder} and go into the store at the next run of this "
+                          f"command; {abandoned} run(s) in flight abandoned")
+
+    def interrupted(self) -> None:
+        """Ctrl-C or kill: close our claims and parents; every logged run stays."""
+        self.pool.close(abandon=True)
+        with contextlib.suppress(Exception):
+            self.tracker.kill([t.run_id for t in self.in_flight.values()], "the sweep was interrupted")
+        for plan in {id(t.plan): t.plan for t in (*self.in_flight.values(), *self.waiting, *self.queue)}.values():
+            if plan.parent_id in self.open_parents:
+                with contextlib.suppress(Exception):
+                    _close(self.tracker, plan, "KILLED")
 
 
 def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "loky",
               scheduler: str | None = None, artifacts: bool = True,
-              reporter: Reporter | None = None) -> list[Plan]:
+              reporter: Reporter | None = None, journal: Journal | None = None) -> list[Plan]:
     """Compute every planned run and log each result as it arrives; returns
     ``plans`` with their counts and failures filled in.
 
     Each sweep with work to do gets a parent run; its children are nested
-    under it. On an interrupt or a store failure the open parents are closed
-    as KILLED and the error propagates; everything logged so far stays.
+    under it. On an interrupt the open claims and parents are closed as
+    KILLED and the interrupt propagates. On a store failure the loop stops
+    within ``DRAIN_S`` seconds, keeps what it computed in the journal and
+    raises :class:`StoreError`.
     """
     if backend not in BACKENDS:
         raise MpeError(f"--backend: unknown backend '{backend}' (use {' or '.join(BACKENDS)})")
     reporter = reporter or Reporter()
-    tasks = [(i, config) for i, plan in enumerate(plans) for config in plan.todo]
+    journal = journal or Journal()
+    owner = Owner.current()
     for plan in plans:
         if plan.todo:
+            plan.started = time.time()
             plan.parent_id = tracker.start_parent(plan.experiment_id, plan.sweep, {
-                "mpe3d.backend": backend, "mpe3d.runs_planned": str(len(plan.todo))})
-    started = time.time()
-    reporter.start(len(tasks), sum(p.skipped for p in plans))
+                "mpe3d.backend": backend, "mpe3d.runs_planned": str(len(plan.todo))}, owner)
+    reporter.start(sum(len(p.todo) for p in plans), sum(p.skipped for p in plans))
     try:
-        for index, record in _records(tasks, jobs, backend, scheduler, artifacts):
-            plan = plans[index]
-            tracker.log_record(plan.experiment_id, plan.parent_id, record,
-                               run_name=plan.sweep.label(record.config), artifacts=artifacts)
-            plan.counts[record.status] += 1
-            if record.error:
-                plan.failures.append((plan.sweep.label(record.config), record.error))
-            reporter.advance(record.status)
-            if plan.pending == 0:
-                _close(tracker, plan, "FINISHED", started)
-    except BaseException:
-        for plan in plans:
-            if plan.parent_id and plan.pending:
-                with contextlib.suppress(Exception):
-                    _close(tracker, plan, "KILLED", started)
-        raise
+        with _pool(jobs, backend, scheduler) as pool:
+            loop = _Loop(plans, tracker, pool, journal, artifacts, reporter)
+            with Heartbeat(lambda: tracker.heartbeat(list(loop.open_parents))) as heartbeat:
+                try:
+                    loop.run(heartbeat)
+                except StoreError as exc:
+                    raise loop.drain(exc) from None
+                except BaseException:
+                    loop.interrupted()
+                    raise
     finally:
         reporter.stop()
+    journal.tidy()
     return plans
 
 
-def _close(tracker, plan: Plan, status: str, started: float) -> None:
+def _close(tracker, plan: Plan, status: str) -> None:
     tracker.finish_parent(plan.parent_id, status, {
         "runs_finished": plan.counts["FINISHED"], "runs_failed": plan.counts["FAILED"],
-        "runs_skipped": plan.skipped, "wall_s": time.time() - started})
+        "runs_skipped": plan.skipped, "runs_elsewhere": plan.elsewhere,
+        "runs_stale_replaced": plan.stale, "wall_s": time.time() - plan.started})

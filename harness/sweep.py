@@ -24,12 +24,14 @@ from __future__ import annotations
 
 import hashlib
 import itertools
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 from .config import ALIASES, KEYS, RunConfig, _coerce, flatten, load_yaml, make_config
 from .errors import MpeError, suggest
+from .limits import check_run_count, check_run_memory
 from .shapes import check_shape
 
 TOP_LEVEL = ("name", "description", "base", "grid", "zip", "repeats", "seeds", "scale")
@@ -221,6 +223,22 @@ def _check_shapes(base: Setting, axes: list[list[Setting]], src: _Source) -> Non
             raise exc.located(src.where(where)) from None
 
 
+def _grid_count(data: Mapping, src: _Source) -> int:
+    """How many runs the grid expands to, from the lists' lengths alone."""
+    count = 1
+    if data.get("grid") is not None:
+        count *= math.prod(len(v) for v, _ in _axis_lists(data["grid"], "grid", src).values())
+    zips = data.get("zip")
+    for i, group in enumerate(zips if isinstance(zips, list) else [zips] if zips else []):
+        count *= max(len(v) for v, _ in _axis_lists(group, f"zip[{i}]", src).values())
+    repeats = data.get("repeats")
+    if isinstance(repeats, int) and not isinstance(repeats, bool) and repeats > 0:
+        count *= repeats
+    elif isinstance(data.get("seeds"), list):
+        count *= max(1, len(data["seeds"]))
+    return count
+
+
 def _expand(base: Setting, axes: list[list[Setting]], src: _Source) -> list[RunConfig]:
     base_values = {key: value for key, (value, _) in base.items()}
     runs = []
@@ -231,6 +249,7 @@ def _expand(base: Setting, axes: list[list[Setting]], src: _Source) -> list[RunC
         overrides = {key: value for key, (value, _) in setting.items()}
         try:
             runs.append(make_config(overrides, base=base_values))
+            check_run_memory(runs[-1])
         except MpeError as exc:
             varied = ", ".join(f"{k}={overrides[k]}" for p in combination for k in p)
             context = f" (in the run with {varied})" if varied else ""
@@ -283,14 +302,18 @@ def _apply_scale(data: Mapping, lines: dict[str, int], scale: str, scales: Mappi
     return data, lines
 
 
-def load_sweep(path: str | Path, scale: str = FULL) -> Sweep:
+def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
+               max_mb: float | None = None) -> Sweep:
     """Read, validate and expand a sweep file at one of its scales.
 
     Every error names ``file:line``; a scale's override is reported at its
-    own line.
+    own line. A grid over ``max_runs`` runs (default
+    :data:`~harness.limits.MAX_RUNS`) is refused before it is expanded, a
+    file over ``max_mb`` MiB before it is parsed, and a run that cannot fit
+    in memory before anything runs.
     """
     path = Path(path)
-    data, lines = load_yaml(path, "sweep file")
+    data, lines = load_yaml(path, "sweep file", max_mb)
     src = _Source(path, lines)
     if not isinstance(data, Mapping):
         raise MpeError(f"{path}: a sweep must be a mapping with keys {', '.join(TOP_LEVEL)}")
@@ -307,6 +330,7 @@ def load_sweep(path: str | Path, scale: str = FULL) -> Sweep:
     if not isinstance(description, str):
         raise src.error("description: expected text", "description")
     base = _base(data, src)
+    check_run_count(_grid_count(data, src), str(path), max_runs)
     seeds = _seed_axis(data, src)
     axes = _grid_axes(data.get("grid"), src) + _zip_axes(data.get("zip"), src)
     _check_axes_disjoint(base, axes, bool(seeds), src)

@@ -35,6 +35,7 @@ class Report:
     title: str
     blocks: list[tuple[str, object]] = field(default_factory=list)
     files: list[Path] = field(default_factory=list)
+    note: str = ""  # appended to every caption while set (e.g. "mixes runs of two code versions")
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -49,6 +50,7 @@ class Report:
 
     def table(self, frame: pd.DataFrame, name: str, caption: str, show: bool = True) -> None:
         """``tables/NAME.md`` and ``tables/NAME.tex``, and the table in the index."""
+        caption = f"{caption} {self.note}".strip()
         md = self.out / "tables" / f"{name}.md"
         tex = self.out / "tables" / f"{name}.tex"
         md.write_text(f"{caption}\n\n{_markdown(frame)}\n")

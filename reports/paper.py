@@ -8,11 +8,13 @@ experiment the recipe does not know gets a generic summary table.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
 import pandas as pd
+
+from harness.identity import code_identity
 
 from . import figures, tables
 from .claims import claims_table
@@ -148,6 +150,7 @@ class Section:
     source: str = ""  # the sweep file and scale
     planned: int | None = None  # configs in the sweep; None when reporting a whole experiment
     varying: tuple[str, ...] = ()
+    code: str = field(default_factory=code_identity)  # the running code, to tell its runs apart
 
 
 def _counts(section: Section) -> str:
@@ -160,6 +163,21 @@ def _counts(section: Section) -> str:
     return text
 
 
+def code_note(frame: pd.DataFrame, current: str) -> tuple[str, str]:
+    """What code computed these runs (a sentence), and a caption note when it
+    was more than one version: numbers of different code are not one experiment."""
+    if frame.empty or "code" not in frame:
+        return "", ""
+    counts = frame["code"].value_counts()
+    listed = ", ".join(f"{code}{' (this code)' if code == current else ''}: {n} run(s)"
+                       for code, n in counts.items())
+    if len(counts) == 1:
+        return f"Computed by code {listed}.", ""
+    return (f"These runs were computed by {len(counts)} different versions of the code ({listed}); "
+            "rerun the sweep without --reuse-stale to compute them all with this code.",
+            f"Mixes runs of {len(counts)} code versions (see the section text).")
+
+
 def render_section(report: Report, section: Section) -> None:
     experiment = BY_NAME.get(section.name)
     report.heading(experiment.title if experiment else section.name)
@@ -167,18 +185,21 @@ def render_section(report: Report, section: Section) -> None:
         report.text(section.description)
     report.text(f"Experiment {section.name}" + (f", sweep {section.source}" if section.source else "")
                 + f": {_counts(section)}.")
+    rows = finished(section.frame)
+    sentence, report.note = code_note(rows, section.code)
+    if sentence:
+        report.text(sentence)
     errors = section.frame["error"].dropna() if "error" in section.frame else pd.Series(dtype=str)
     errors = errors[errors.astype(str).str.len() > 0]
     for message, n in errors.astype(str).value_counts().head(3).items():
         report.text(f"{n} failed run(s): {message}")
-    rows = finished(section.frame)
     if rows.empty:
         report.text("No finished runs yet: nothing to show.")
-        return
-    if experiment:
+    elif experiment:
         experiment.render(rows, report)
     else:
         _generic(rows, report, list(section.varying))
+    report.note = ""
 
 
 def write(out: Path, sections: list[Section], title: str, facts: list[str] | None = None) -> Report:
@@ -194,7 +215,11 @@ def write(out: Path, sections: list[Section], title: str, facts: list[str] | Non
         report.heading("Claims")
         report.text("Each claim of the paper, tested on the runs below; 'n/a' where a claim "
                     "does not concern that method.")
+        mixed = [s.name for s in sections if code_note(finished(s.frame), s.code)[1]]
+        report.note = f"Some runs behind them come from other code versions ({', '.join(mixed)})." \
+            if mixed else ""
         report.table(checked, "claims", "The paper's claims and their verdicts.")
+        report.note = ""
     for section in sections:
         render_section(report, section)
     report.text(f"Rendered in {time.perf_counter() - start:.1f} s.")

@@ -5,7 +5,6 @@ import os
 import signal
 import socket
 import subprocess
-import sys
 import time
 import urllib.request
 
@@ -190,59 +189,6 @@ def stop(process):
     except subprocess.TimeoutExpired:
         os.killpg(process.pid, signal.SIGKILL)
         process.wait()
-
-
-FOUR = SWEEP.replace("name: tiny", "name: four").replace("repeats: 2", "repeats: 1")
-
-
-def test_real_mlflow_server_over_http(tmp_path, capsys, monkeypatch):
-    port = free_port()
-    server = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port),
-         "--workers", "1",
-         "--backend-store-uri", f"sqlite:///{tmp_path}/server.db",
-         "--artifacts-destination", str(tmp_path / "server-artifacts")],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    try:
-        uri = f"http://127.0.0.1:{port}"
-        wait_for(uri + "/health", server)
-        path = tmp_path / "four.yaml"
-        path.write_text(FOUR)
-        out = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri, cwd=tmp_path)
-        assert out.returncode == 0, out.stderr
-        assert "View run" not in out.stdout  # MLflow's own chatter stays out of our output
-        kids, parents = children(MlflowClient(uri), "four")
-        assert len(kids) == 4 and {r.info.status for r in kids} == {"FINISHED"}
-        assert len(parents) == 1
-        assert {a.path for a in MlflowClient(uri).list_artifacts(kids[0].info.run_id)} == {
-            "reconstruction.ply", "ground_truth.ply"}
-        assert len(list((tmp_path / "server-artifacts").rglob("reconstruction.ply"))) == 4
-        assert not (tmp_path / "mlflow.db").exists()  # nothing went to the local default
-        monkeypatch.setenv("MLFLOW_TRACKING_URI", uri)
-        code, table, err = cli(capsys, "runs", "four", "--format", "csv")
-        assert code == 0 and len(pd.read_csv(io.StringIO(table))) == 4, err
-    finally:
-        stop(server)
-    code, _, err = cli(capsys, "sweep", path, "--tracking-uri", uri)
-    assert code == 2 and "cannot reach the MLflow tracking server" in err
-
-
-def test_dask_cluster_matches_one_job_exactly(tmp_path):
-    path = tmp_path / "four.yaml"
-    path.write_text(FOUR)
-    tables = {}
-    for name, flags in {"dask": ["--backend", "dask", "--jobs", "2"], "serial": ["--jobs", "1"]}.items():
-        uri = f"sqlite:///{tmp_path}/{name}.db"
-        out = run_cli("sweep", str(path), *flags, "--tracking-uri", uri, "--no-artifacts")
-        assert out.returncode == 0, out.stderr
-        assert "mpe3d: " not in out.stderr  # no dask log chatter
-        kids, _ = children(MlflowClient(uri), "four")
-        assert len(kids) == 4
-        tables[name] = {r.data.tags["mpe3d.config_hash"]: r.data.metrics for r in kids}
-    assert tables["dask"].keys() == tables["serial"].keys()
-    for key, metrics in tables["dask"].items():
-        for metric in ("cd", "cd_mean", "emd", "emd_mean", "roa", "stress", "iterations"):
-            assert metrics[metric] == tables["serial"][key][metric], (key, metric)
 
 
 def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
