@@ -279,12 +279,13 @@ def cmd_report(args) -> int:
 
     from .tracking import Tracker
 
-    tracker = Tracker(args.tracking_uri, create=False)
-    if args.sweep:
+    if args.sweep:  # the file first: its errors are the user's to fix, whatever the store
         from .sweep import load_sweep
 
-        section = _sweep_section(load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb),
-                                 tracker)
+        sweep = load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb)
+    tracker = Tracker(args.tracking_uri, create=False)
+    if args.sweep:
+        section = _sweep_section(sweep, tracker)
     else:
         known = {s.name: s for s in map(_load_paper_sweep, _paper_sweep_files())}
         sweep = known.get(args.experiment)

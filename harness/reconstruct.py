@@ -72,6 +72,9 @@ def _check_header(path: Path) -> None:
     with open(path, newline="", encoding="utf-8") as handle:
         header = [name.strip() for name in next(csv.reader(handle), [])]
     for i, name in enumerate(header):
+        if not name and len(header) > 1:
+            raise MpeError(f"{path}: the header has no name for column {i + 1} "
+                           "(it must be view,point,x,y)")
         if name in header[:i]:
             raise MpeError(f"{path}: the header names column '{name}' twice "
                            f"(columns {header.index(name) + 1} and {i + 1})")
@@ -99,7 +102,7 @@ def _read_csv(path: Path) -> list[dict]:
         if len(bad):
             row = int(bad[0])
             raise MpeError(f"{path}: row {row + 2}: {column} is not a finite number "
-                           f"({frame[column].iloc[row]!r})")
+                           f"({str(frame[column].iloc[row])!r})")
         frame[column] = numbers
     twice = frame.duplicated(["view", "point"], keep="first")
     if twice.any():

@@ -148,7 +148,9 @@ def require_memory(nbytes: float, what: str) -> None:
     except (ValueError, OSError, AttributeError):  # not a POSIX system: let numpy decide
         return
     if nbytes > available:
-        raise MpeError(f"{what} need about {nbytes / 2**30:.0f} GiB, "
+        need = nbytes / 2**30
+        amount = f"{need:.0f}" if need < 1e6 else f"{need:.1e}"
+        raise MpeError(f"{what} need about {amount} GiB, "
                        f"more than this machine's {available / 2**30:.0f} GiB")
 
 

@@ -151,3 +151,24 @@ def test_runs_logged_before_a_key_existed_read_as_its_default():
     assert list(frame["visibility.min_views"]) == [0, 2] and set(frame["view_layout"]) == {"band"}
     assert list(frame["method"]) == ["3DMPE (paper)", "ours (refine)"]
     assert list(load_runs(Store(), "old", hashes=["b"])["config_hash"]) == ["b"]
+
+
+def test_a_report_says_which_code_made_its_numbers(tmp_path):
+    from reports import paper
+
+    def section(codes):
+        frame = pd.DataFrame({"status": ["FINISHED"] * len(codes), "config_hash": list("abcd")[:len(codes)],
+                              "code": codes, "error": "", "solver.name": "sgd", "method": "3DMPE (paper)",
+                              "views": range(3, 3 + len(codes)), "cd_x100": 1.0, "emd_x100": 2.0,
+                              "roa": 0.1, "runtime_s": 0.5})
+        return paper.Section("mine", frame, varying=("views",), code="0.1.0/aaaa")
+
+    one = paper.write(tmp_path / "one", [section(["0.1.0/aaaa"] * 2)], "one")
+    text = (one.out / "index.md").read_text()
+    assert "Computed by code 0.1.0/aaaa (this code): 2 run(s)." in text and "Mixes runs" not in text
+    mixed = paper.write(tmp_path / "mixed", [section(["0.1.0/aaaa", "0.0.9/bbbb", "0.0.9/bbbb"])], "m")
+    text = (mixed.out / "index.md").read_text()
+    assert "computed by 2 different versions of the code (0.0.9/bbbb: 2 run(s), " \
+           "0.1.0/aaaa (this code): 1 run(s))" in text
+    table = (mixed.out / "tables" / "summary.md").read_text()
+    assert table.startswith("Mean and standard deviation") and "Mixes runs of 2 code versions" in table
