@@ -241,10 +241,6 @@ def _pool(jobs: int, backend: str, scheduler: str | None) -> Iterator:
         pool.close(abandon=False)
 
 
-def _task(config: RunConfig, keep_clouds: bool) -> RunRecord:
-    return run_record(config, keep_clouds)
-
-
 # -- the run loop -----------------------------------------------------------------
 
 @dataclass
@@ -262,6 +258,7 @@ class _Loop:
         self.tracker, self.pool, self.journal = tracker, pool, journal
         self.artifacts, self.reporter = artifacts, reporter
         self.owner = Owner.current()
+        self.plans = plans
         self.queue = deque(_Task(plan, config) for plan in plans for config in plan.todo)
         self.in_flight: dict[cf.Future, _Task] = {}
         self.waiting: list[_Task] = []  # claimed by another live sweep
@@ -291,7 +288,7 @@ class _Loop:
                                               plan.known[key])
             if state == "won":
                 task.run_id = other
-                future = self.pool.submit(_task, task.config, self.artifacts)
+                future = self.pool.submit(run_record, task.config, self.artifacts)
                 self.in_flight[future] = task
             elif state == "busy":
                 task.next_look = time.time() + POLL_S * random.uniform(0.5, 1.5)
@@ -374,7 +371,7 @@ class _Loop:
         self.pool.close(abandon=True)
         with contextlib.suppress(Exception):
             self.tracker.kill([t.run_id for t in self.in_flight.values()], "the sweep was interrupted")
-        for plan in {id(t.plan): t.plan for t in (*self.in_flight.values(), *self.waiting, *self.queue)}.values():
+        for plan in self.plans:
             if plan.parent_id in self.open_parents:
                 with contextlib.suppress(Exception):
                     _close(self.tracker, plan, "KILLED")
