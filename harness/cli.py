@@ -230,10 +230,21 @@ def _runs_table(frame, all_params: bool):
     return table[columns]
 
 
+def _note_journal(tracker) -> None:
+    """Say so when computed results still wait in the journal for this store."""
+    from .journal import Journal
+
+    waiting = Journal().pending(tracker.uri)
+    if waiting:
+        print(f"mpe3d: note: {waiting} computed result(s) in {Journal().folder} are not in "
+              f"{tracker.uri} yet; the next `mpe3d sweep` here replays them", file=sys.stderr)
+
+
 def cmd_runs(args) -> int:
     from .tracking import Tracker
 
     tracker = Tracker(args.tracking_uri, create=False)
+    _note_journal(tracker)
     frame = tracker.runs_frame(args.experiment, history=args.history)
     if frame.empty:
         print(f"mpe3d: experiment '{args.experiment}' has no runs yet", file=sys.stderr)
@@ -284,6 +295,7 @@ def cmd_report(args) -> int:
 
         sweep = load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb)
     tracker = Tracker(args.tracking_uri, create=False)
+    _note_journal(tracker)
     if args.sweep:
         section = _sweep_section(sweep, tracker)
     else:

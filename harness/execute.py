@@ -53,6 +53,7 @@ class RunResult:
         out["warnings"] = self.facts.get("warnings", [])
         out["termination"] = self.reconstruction.termination
         out["wall_s"] = self.wall_s
+        out["code"] = code_identity()
         return out
 
 

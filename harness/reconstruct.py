@@ -32,6 +32,7 @@ from solvers.degenerate import DegenerateWarning
 
 from .errors import MpeError
 from .files import atomic_write, write_together
+from .identity import code_identity
 
 INPUT_FORMATS = (".csv", ".npz", ".json")
 OUTPUT_FORMATS = (".ply", ".csv", ".npy")
@@ -473,7 +474,7 @@ def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, run
         "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist()},
         "projections": np.asarray(rec.projections).tolist(),
         "iterations": int(rec.iterations), "termination": rec.termination,
-        "runtime_s": runtime,
+        "runtime_s": runtime, "code": code_identity(),
     }
 
 
