@@ -306,7 +306,7 @@ def kill_trials(n: int, rng: random.Random) -> dict:
             uri = f"sqlite:///{folder}/t.db"
             sweep = subprocess.Popen([*MPE3D, "sweep", str(path), "--jobs", "2", "--tracking-uri", uri,
                                       "--no-artifacts", "--quiet"], cwd=folder)
-            time.sleep(rng.uniform(6, 16))
+            time.sleep(rng.uniform(9, 20))  # past the start (a new store takes ~6 s), into the runs
             sweep.send_signal(signal.SIGKILL)
             sweep.wait()
             logged_before = {r.data.tags["mpe3d.config_hash"] for r in _children(uri, "kill")
