@@ -234,9 +234,10 @@ def _note_journal(tracker) -> None:
     """Say so when computed results still wait in the journal for this store."""
     from .journal import Journal
 
-    waiting = Journal().pending(tracker.uri)
+    journal = Journal()
+    waiting = journal.pending(tracker.uri)
     if waiting:
-        print(f"mpe3d: note: {waiting} computed result(s) in {Journal().folder} are not in "
+        print(f"mpe3d: note: {waiting} computed result(s) in {journal.folder} are not in "
               f"{tracker.uri} yet; the next `mpe3d sweep` here replays them", file=sys.stderr)
 
 
@@ -337,6 +338,7 @@ def cmd_reproduce(args) -> int:
     from .tracking import Tracker
 
     start = time.time()
+    commit = git_commit()
     sweeps = [_load_paper_sweep(path, args.scale) for path in _paper_sweep_files()]
     tracker = Tracker(args.tracking_uri)
     _say(f"reproduce-paper --scale {args.scale}: {len(sweeps)} experiments, "
@@ -351,8 +353,7 @@ def cmd_reproduce(args) -> int:
     facts = [f"Scale {args.scale}; {sum(len(s.runs) for s in sweeps)} runs in "
              f"{len(sweeps)} experiments: {ran} run now, {reused} reused from {tracker.uri}; "
              f"wall time for the runs {run_wall:.1f} s on {os.cpu_count()} cores "
-             f"({platform.node()}, mpe3d {tracker.code}"
-             + (f", git {git_commit()}" if git_commit() else "") + ").",
+             f"({platform.node()}, mpe3d {tracker.code}{f', git {commit}' if commit else ''}).",
              "Methods: 'baseline (MDS)' and '3DMPE (paper)' are the paper's baseline and its SGD, "
              "implemented faithfully; 'ours (refine)' is mpe3d's exact solver, not the paper's. "
              "CD and EMD are 100 × mean distances after a rigid alignment, the scale of the authors' "

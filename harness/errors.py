@@ -35,6 +35,12 @@ class StoreError(MpeError):
     exit_code = 3
 
 
+def first_line(exc: BaseException, limit: int = 300) -> str:
+    """An exception's first line of text (its type's name when it has none)."""
+    lines = str(exc).strip().splitlines()
+    return lines[0][:limit] if lines else type(exc).__name__
+
+
 def suggest(name: str, candidates) -> str:
     """`` (did you mean 'x'?)`` for the closest candidate, or an empty string."""
     match = difflib.get_close_matches(name, list(candidates), n=1, cutoff=0.5)

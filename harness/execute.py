@@ -113,24 +113,29 @@ class RunRecord:
     traceback: str = ""
 
 
-_ARRAY_FIELDS = ("stress_history", "truth", "reconstruction")
+ARRAY_FIELDS = ("stress_history", "truth", "reconstruction")  # kept out of JSON
 
 
 def record_fields(record: RunRecord) -> dict[str, Any]:
     """A record's JSON-able fields (its arrays go elsewhere: the journal's .npz)."""
-    return {k: v for k, v in vars(record).items() if k not in _ARRAY_FIELDS}
+    return {k: v for k, v in vars(record).items() if k not in ARRAY_FIELDS}
 
 
 def record_from_fields(fields: dict[str, Any], arrays: dict[str, np.ndarray]) -> RunRecord:
-    return RunRecord(**fields, **{k: arrays.get(k) for k in _ARRAY_FIELDS})
+    return RunRecord(**fields, **{k: arrays.get(k) for k in ARRAY_FIELDS})
+
+
+def _made_by(config: RunConfig) -> dict[str, Any]:
+    """Which run a record is of, and the code that computed it."""
+    return {"config_hash": config.hash(), "params": config.flat(), "code": code_identity()}
 
 
 def failed_record(config: RunConfig, error: str, trace: str = "", start: float | None = None,
                   facts: dict[str, str] | None = None) -> RunRecord:
     """The record of a run that raised, or whose worker died."""
     now = time.time()
-    return RunRecord(config_hash=config.hash(), params=config.flat(), code=code_identity(),
-                     status="FAILED", start_ms=int((start or now) * 1000), end_ms=int(now * 1000),
+    return RunRecord(**_made_by(config), status="FAILED", start_ms=int((start or now) * 1000),
+                     end_ms=int(now * 1000),
                      facts=facts or {}, error=error, traceback=trace)
 
 
@@ -144,13 +149,12 @@ def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
         message = str(exc) if isinstance(exc, MpeError) else f"{type(exc).__name__}: {exc}"
         return failed_record(config, message or type(exc).__name__, traceback.format_exc(),
                              start, worker)
-    who = {"config_hash": config.hash(), "params": config.flat(), "code": code_identity()}
     recon = result.reconstruction
     facts = {**worker, "termination": recon.termination,
              "visible_per_view": ",".join(map(str, result.scene.visible_per_view))}
     if result.facts.get("warnings"):
         facts["warnings"] = " | ".join(result.facts["warnings"])
-    return RunRecord(**who, status="FINISHED", start_ms=int(start * 1000),
+    return RunRecord(**_made_by(config), status="FINISHED", start_ms=int(start * 1000),
                      end_ms=int(time.time() * 1000),
                      metrics={**result.metrics, "wall_s": result.wall_s},
                      stress_history=np.asarray(recon.stress_history, dtype=float), facts=facts,

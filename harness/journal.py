@@ -24,11 +24,11 @@ from typing import Iterator
 
 import numpy as np
 
+from .execute import ARRAY_FIELDS, record_fields, record_from_fields
 from .files import atomic_write
 from .ownership import STALE_S, Owner
 
 FOLDER = "mpe3d-journal"
-ARRAYS = ("stress_history", "truth", "reconstruction")
 
 
 @dataclass
@@ -52,10 +52,8 @@ class Journal:
 
     def write(self, record, meta: dict) -> Entry:
         """Put ``record`` on disk (atomically) before it is logged."""
-        from .execute import record_fields
-
         path = self.folder / f"{os.getpid()}-{uuid.uuid4().hex[:12]}.json"
-        arrays = {k: getattr(record, k) for k in ARRAYS if getattr(record, k) is not None}
+        arrays = {k: getattr(record, k) for k in ARRAY_FIELDS if getattr(record, k) is not None}
 
         def save_arrays(temp: Path) -> None:
             with open(temp, "wb") as handle:  # np.savez(name) would append .npz to the temp name
@@ -87,30 +85,29 @@ class Journal:
         if not self.folder.is_dir():
             return
         me = os.getpid()
-        for path in sorted(self.folder.glob("*.json")):
-            entry = self._read(path)
-            if entry is None or entry.meta.get("uri") != uri:
-                continue
-            if self._writer_alive(entry, path):
+        for path, data in self._entries(uri):
+            if self._writer_alive(data["meta"], path):
                 continue
             taken = path.with_name(f"{me}-{uuid.uuid4().hex[:12]}.json")
             try:
-                os.rename(entry.arrays, taken.with_suffix(".npz"))
+                os.rename(path.with_suffix(".npz"), taken.with_suffix(".npz"))
                 os.rename(path, taken)
             except FileNotFoundError:  # another sweep took it first
                 continue
-            entry.path = taken
-            entry.meta["owner"] = Owner.current().tag()  # others now see a live writer
-            data = json.loads(taken.read_text())
-            data["meta"] = entry.meta
+            data["meta"]["owner"] = Owner.current().tag()  # others now see a live writer
             atomic_write(taken, lambda temp, text=json.dumps(data): temp.write_text(text))
-            yield entry
+            try:
+                with np.load(taken.with_suffix(".npz"), allow_pickle=False) as arrays:
+                    loaded = {k: arrays[k] for k in arrays.files}
+            except (OSError, ValueError):  # damaged: leave it for a person to look at
+                continue
+            yield Entry(taken, data["meta"], record_from_fields(data["record"], loaded))
 
     @staticmethod
-    def _writer_alive(entry: Entry, path: Path) -> bool:
+    def _writer_alive(meta: dict, path: Path) -> bool:
         """By pid on this host; an entry of another host's (a shared folder)
         lives seconds unless its writer could not log it, so age tells there."""
-        owner = Owner.parse(entry.meta.get("owner"))
+        owner = Owner.parse(meta.get("owner"))
         if owner is None or owner.pid == os.getpid():
             return False
         if owner.host == socket.gethostname():
@@ -119,19 +116,16 @@ class Journal:
 
     def pending(self, uri: str) -> int:
         """How many entries for ``uri`` wait to be replayed."""
+        return sum(1 for _ in self._entries(uri))
+
+    def _entries(self, uri: str) -> Iterator[tuple[Path, dict]]:
+        """The readable entries for ``uri``: their .json paths and contents."""
         if not self.folder.is_dir():
-            return 0
-        return sum(1 for p in self.folder.glob("*.json")
-                   if (e := self._read(p)) is not None and e.meta.get("uri") == uri)
-
-    @staticmethod
-    def _read(path: Path) -> Entry | None:
-        from .execute import record_from_fields
-
-        try:
-            data = json.loads(path.read_text())
-            with np.load(path.with_suffix(".npz"), allow_pickle=False) as arrays:
-                loaded = {k: arrays[k] for k in arrays.files}
-        except (OSError, ValueError):  # being written or taken by another process
-            return None
-        return Entry(path, data["meta"], record_from_fields(data["record"], loaded))
+            return
+        for path in sorted(self.folder.glob("*.json")):
+            try:
+                data = json.loads(path.read_text())
+            except (OSError, ValueError):  # being written or taken by another process
+                continue
+            if data.get("meta", {}).get("uri") == uri:
+                yield path, data

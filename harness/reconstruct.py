@@ -30,7 +30,7 @@ import solvers
 from solvers import Observations, View
 from solvers.degenerate import DegenerateWarning
 
-from .errors import MpeError
+from .errors import MpeError, first_line
 from .files import atomic_write, write_together
 from .identity import code_identity
 
@@ -90,7 +90,7 @@ def _read_csv(path: Path) -> list[dict]:
     except pd.errors.EmptyDataError:
         raise MpeError(f"{path}: empty file") from None
     except (pd.errors.ParserError, UnicodeDecodeError, csv.Error) as exc:
-        raise MpeError(f"{path}: not a UTF-8 CSV file ({str(exc).splitlines()[0]})") from None
+        raise MpeError(f"{path}: not a UTF-8 CSV file ({first_line(exc)})") from None
     frame.columns = [str(c).strip() for c in frame.columns]
     for column in ("view", "point", "x", "y"):
         if column not in frame.columns:
@@ -140,7 +140,7 @@ def _npz_members(path: Path) -> dict[str, np.ndarray]:
     try:
         archive = np.load(path, allow_pickle=False)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise MpeError(f"{path}: not an NPZ file ({str(exc).splitlines()[0] if str(exc) else type(exc).__name__})") from None
+        raise MpeError(f"{path}: not an NPZ file ({first_line(exc)})") from None
     members = {}
     with archive:
         for name in archive.files:
@@ -151,7 +151,7 @@ def _npz_members(path: Path) -> dict[str, np.ndarray]:
                 raise
             except ValueError as exc:
                 reason = "holds Python objects, which are never unpickled" \
-                    if "allow_pickle" in str(exc) else str(exc).splitlines()[0]
+                    if "allow_pickle" in str(exc) else first_line(exc)
                 raise MpeError(f"{path}: member '{name}' {reason}") from None
             except MemoryError:
                 raise MpeError(f"{path}: member '{name}' does not fit in memory") from None
@@ -282,7 +282,7 @@ def read_projections(path: str | Path) -> np.ndarray:
     except OSError as exc:
         raise MpeError(f"{path}: cannot read: {exc.strerror or exc}") from None
     except (ValueError, EOFError) as exc:
-        raise MpeError(f"{path}: not a {path.suffix} array file ({str(exc).splitlines()[0] if str(exc) else 'truncated'})") from None
+        raise MpeError(f"{path}: not a {path.suffix} array file ({first_line(exc)})") from None
     except RecursionError:
         raise MpeError(f"{path}: JSON nested too deeply") from None
     mats = []

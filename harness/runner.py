@@ -275,9 +275,8 @@ class _Loop:
             elif self.waiting:
                 time.sleep(min(POLL_S, max(0.0, min(t.next_look for t in self.waiting) - time.time())))
             self._look_at_waiting()
-            if heartbeat.error is not None:
-                raise StoreError(f"tracking store {self.tracker.uri}: heartbeat failed: "
-                                 f"{str(heartbeat.error).splitlines()[0][:300]}")
+            if heartbeat.error is not None:  # a StoreError naming the store already
+                raise heartbeat.error
 
     def _fill(self) -> None:
         while self.queue and len(self.in_flight) < self.pool.capacity:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from .errors import MpeError, StoreError, suggest
+from .errors import MpeError, StoreError, first_line, suggest
 from .identity import code_identity, git_commit
 from .ownership import STALE_S, Owner
 
@@ -35,9 +35,11 @@ PARENT_TAG = "mlflow.parentRunId"
 # Statuses in the order a resume trusts them: a FINISHED run of a config wins.
 STATUS_RANK = {"FINISHED": 3, "FAILED": 2, "KILLED": 1, "RUNNING": 0, "SCHEDULED": 0}
 # MLflow retries an unreachable server for minutes; a sweep must give up in
-# well under 30 s (its results wait in the journal), so at most 3 tries of 5 s.
+# well under 30 s (its results wait in the journal): at most 3 tries of 4 s and
+# 3 s of back-off, so a hung server is given up on within 15 s.
 HTTP_LIMITS = {"MLFLOW_HTTP_REQUEST_MAX_RETRIES": "2", "MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR": "1",
-               "MLFLOW_HTTP_REQUEST_TIMEOUT": "5"}
+               "MLFLOW_HTTP_REQUEST_TIMEOUT": "4"}
+_UNREACHABLE = ("connection refused", "no answer in time")
 
 
 def resolve_uri(uri: str | None = None) -> str:
@@ -64,9 +66,12 @@ def claim_key(code: str, config_hash: str) -> str:
 
 
 def _quiet_mlflow() -> None:
-    # MLflow and alembic log schema migrations at INFO on a new SQLite store.
+    # MLflow and alembic log schema migrations at INFO on a new SQLite store;
+    # urllib3 warns at every retry of a server that stopped answering, which
+    # the one line of a StoreError says better.
     for name in ("mlflow", "alembic"):
         logging.getLogger(name).setLevel(logging.WARNING)
+    logging.getLogger("urllib3").setLevel(logging.ERROR)
 
 
 def _check_server(uri: str) -> None:
@@ -106,8 +111,7 @@ def _reason(exc: Exception) -> str:
                            ("database is locked", "the database is locked")):
         if marker in text:
             return reason
-    lines = text.strip().splitlines()
-    return lines[0][:300] if lines else type(exc).__name__
+    return first_line(exc)
 
 
 @contextlib.contextmanager
@@ -381,9 +385,10 @@ class Tracker:
                 self.client.log_batch(run_id, metrics=metrics, params=params,
                                       tags=[RunTag(k, v) for k, v in tags.items()])
                 self._log_artifacts(run_id, record, artifacts)
-            except BaseException:  # interrupted half-way: never leave a run RUNNING
-                with contextlib.suppress(Exception):
-                    self.client.set_terminated(run_id, status="KILLED")
+            except BaseException as exc:  # interrupted half-way: never leave a run RUNNING,
+                if _reason(exc) not in _UNREACHABLE:  # unless the store is gone: another try
+                    with contextlib.suppress(Exception):  # would only wait for it again
+                        self.client.set_terminated(run_id, status="KILLED")
                 raise
             self.client.set_terminated(run_id, status=record.status, end_time=record.end_ms)
 

@@ -8,8 +8,9 @@
   left RUNNING, every config FINISHED exactly once, nothing logged lost;
 - concurrent: two sweeps of one experiment started together on a new store:
   both succeed, every config computed once;
-- outage: the tracking server killed mid-sweep and restarted: the sweep stops
-  within 30 s, and the rerun loses nothing and computes nothing twice.
+- outage: the tracking server killed (connections refused) or hung (SIGSTOP:
+  requests time out) mid-sweep, then restarted: the sweep stops within 30 s
+  with one error line, and the rerun loses nothing and computes nothing twice.
 """
 
 from __future__ import annotations
@@ -370,7 +371,10 @@ def _server(folder, port):
 
 
 def _stop(process):
-    os.killpg(process.pid, signal.SIGKILL)
+    try:
+        os.killpg(process.pid, signal.SIGKILL)
+    except ProcessLookupError:  # already gone
+        pass
     process.wait()
 
 
@@ -389,17 +393,21 @@ def outage_trials(n: int, rng: random.Random) -> dict:
             time.sleep(rng.uniform(8, 16))
             logged_before = {r.data.tags["mpe3d.config_hash"] for r in _children(uri, "outage")
                              if r.info.status == "FINISHED" and "mpe3d.config_hash" in r.data.tags}
-            _stop(server)
+            mode = ("kill", "hang")[i % 2]
+            os.killpg(server.pid, signal.SIGSTOP if mode == "hang" else signal.SIGKILL)
             killed = time.time()
             _, err = sweep.communicate()
             stopped_s = time.time() - killed
+            _stop(server)
             journaled = len(list((folder / "mpe3d-journal").glob("*.json")))
             server = _server(folder, port)
             again = subprocess.run([*MPE3D, "sweep", str(path), "--jobs", "2", "--tracking-uri", uri, "--quiet"],
                                    cwd=folder, capture_output=True, text=True)
             audit = _audit(uri, "outage", _hashes(path))
             _stop(server)
-            outcomes.append({"first_exit": sweep.returncode, "stopped_s": round(stopped_s, 1),
+            outcomes.append({"mode": mode, "first_exit": sweep.returncode, "stopped_s": round(stopped_s, 1),
+                             "error_lines": len(err.strip().splitlines()),
+                             **({"stderr": err.strip()[:600]} if len(err.strip().splitlines()) != 1 else {}),
                              "journaled": journaled, "logged_before": len(logged_before),
                              "second_exit": again.returncode, **audit})
     return {"trial": "server outage", "trials": n, "outcomes": outcomes,
