@@ -23,9 +23,9 @@ from pathlib import Path
 if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
     sys.path.pop(0)  # this folder would shadow the ``solvers`` package
 
-from harness.runner import plan_sweeps, run_plans
-from harness.sweep import load_sweep
-from harness.tracking import Tracker
+from mpe3d.harness.runner import plan_sweeps, run_plans
+from mpe3d.harness.sweep import load_sweep
+from mpe3d.harness.tracking import Tracker
 
 TARGET_S = 0.15
 SWEEP = """

@@ -3,7 +3,7 @@
     python benchmarks/reconstruct_scale.py [--points 100000] [--points 1000000] [--views 8]
 
 Each point is in exactly 3 of the views, noise-free, fed through the public
-API (``harness.reconstruct.reconstruct``, validation included) with refine.
+API (``mpe3d.harness.reconstruct.reconstruct``, validation included) with refine.
 Target: 100,000 points x 8 views, roa < 1e-6 in under 60 s and 4 GB.
 Peak memory is this process's maximum RSS (ru_maxrss), scene sampling
 included, so it is an upper bound on the solver's.
@@ -21,10 +21,10 @@ from pathlib import Path
 if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
     sys.path.pop(0)  # this folder would shadow the ``solvers`` package
 
-from harness.config import make_config  # noqa: E402
-from harness.metrics import roa  # noqa: E402
-from harness.observe import build_scene, observe, seed_streams  # noqa: E402
-from harness.reconstruct import reconstruct  # noqa: E402
+from mpe3d.harness.config import make_config  # noqa: E402
+from mpe3d.harness.metrics import roa  # noqa: E402
+from mpe3d.harness.observe import build_scene, observe, seed_streams  # noqa: E402
+from mpe3d.harness.reconstruct import reconstruct  # noqa: E402
 
 
 def case(points: int, views: int, setting: str, shape: str) -> dict:

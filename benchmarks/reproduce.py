@@ -26,7 +26,7 @@ TARGETS_S = {"tiny": 60.0, "quick": 180.0, "full": 3600.0}
 
 def mpe3d() -> list[str]:
     script = Path(sys.executable).parent / "mpe3d"
-    return [str(script)] if script.exists() else [sys.executable, "-m", "harness.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "mpe3d.harness.cli"]
 
 
 def reproduce(folder: Path, scale: str, jobs: int, out: str) -> tuple[float, str]:

@@ -21,9 +21,9 @@ from pathlib import Path
 if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
     sys.path.pop(0)
 
-from harness.config import make_config  # noqa: E402
-from harness.execute import run  # noqa: E402
-from harness.shapes import shape_names  # noqa: E402
+from mpe3d.harness.config import make_config  # noqa: E402
+from mpe3d.harness.execute import run  # noqa: E402
+from mpe3d.harness.shapes import shape_names  # noqa: E402
 
 
 def main(argv=None) -> int:

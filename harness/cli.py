@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 from .config import config_from_file, describe_keys, make_config, parse_override
-from .errors import MpeError
+from ..errors import MpeError
 from .runner import BACKENDS
 
 
@@ -77,11 +77,18 @@ def cmd_shapes(args) -> int:
 
 
 def cmd_solvers(args) -> int:
-    import solvers
+    from mpe3d import solvers
 
-    for name in sorted(solvers.SOLVERS):
-        options = ", ".join(f"{k}={v}" for k, v in solvers.solver_options(name).items())
-        print(f"{name:<9} {options}")
+    for whose, paper in (("the paper's", True), ("our", False)):
+        print(f"{whose} solvers:")
+        for name, spec in sorted(solvers.SOLVERS.items()):
+            if spec.paper != paper:
+                continue
+            print(f"  {name:<9} {spec.summary}")
+            for option, default in spec.options().items():
+                print(f"    solver.{option}={default}  ({spec.constraints[option]})")
+            if spec.uses_init:
+                print("    init=smart|random  (the starting point)")
     return 0
 
 
@@ -263,8 +270,8 @@ def cmd_runs(args) -> int:
 
 
 def _sweep_section(sweep, tracker):
-    from reports.load import runs
-    from reports.paper import Section
+    from mpe3d.reports.load import runs
+    from mpe3d.reports.paper import Section
 
     frame = runs(tracker, sweep.name, hashes=[c.hash() for c in sweep.runs]) \
         if tracker.experiment_id(sweep.name, create=False) else _empty_runs()
@@ -286,8 +293,8 @@ def _wrote(report) -> None:
 
 
 def cmd_report(args) -> int:
-    from reports import paper
-    from reports.load import runs
+    from mpe3d.reports import paper
+    from mpe3d.reports.load import runs
 
     from .tracking import Tracker
 
@@ -311,7 +318,7 @@ def cmd_report(args) -> int:
 
 
 def _paper_sweep_files():
-    from sweeps import paper_sweeps
+    from mpe3d.sweeps import paper_sweeps
 
     return paper_sweeps()
 
@@ -323,7 +330,7 @@ def _load_paper_sweep(path, scale="full"):
 
 
 def _write_report(out: Path, sections, title, facts):
-    from reports import paper
+    from mpe3d.reports import paper
 
     try:
         return paper.write(out, sections, title, facts)

@@ -15,7 +15,7 @@ from typing import Any, Mapping
 
 import yaml
 
-from .errors import MpeError, coerce, suggest
+from ..errors import MpeError, coerce, suggest
 
 SCHEMA_VERSION = 2  # bump when a key's meaning changes: every cached run is redone
 
@@ -286,7 +286,7 @@ def _check_ranges(v: dict[str, Any]) -> None:
 def make_config(overrides: Mapping[str, Any] | None = None,
                 base: Mapping[str, Any] | None = None) -> RunConfig:
     """Validate dotted overrides on top of ``base`` (itself on top of the defaults)."""
-    from solvers import validate_options  # solvers own their option lists
+    from mpe3d.solvers import validate_options  # solvers own their option lists
 
     values = {key: spec.default for key, spec in KEYS.items()}
     options: dict[str, Any] = {}

@@ -14,12 +14,12 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-import solvers
-from solvers.degenerate import DegenerateWarning
+from mpe3d import solvers
+from mpe3d.solvers.degenerate import DegenerateWarning
 
 from . import metrics as metrics_mod
 from .config import RunConfig
-from .errors import MpeError
+from ..errors import MpeError
 from .identity import code_identity
 from .limits import check_run_memory
 from .observe import Scene, build_scene, observe, seed_streams

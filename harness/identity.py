@@ -80,7 +80,7 @@ def code_fingerprint() -> str:
 @lru_cache(maxsize=1)
 def code_identity() -> str:
     """``<version>/<fingerprint>``: what a run's ``mpe3d.code`` tag holds."""
-    from . import __version__
+    from .. import __version__
 
     return f"{__version__}/{code_fingerprint()}"
 

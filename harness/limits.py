@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from .errors import MpeError
+from ..errors import MpeError
 
 MAX_RUNS = 100_000
 MAX_YAML_MB = 1.0
@@ -46,7 +46,7 @@ def run_bytes(points: int) -> float:
 
 def check_run_memory(config) -> None:
     """Refuse a config whose run cannot fit in this machine's memory."""
-    from solvers.base import require_memory
+    from mpe3d.solvers.base import require_memory
 
     n = config["points"]
     try:

@@ -1,7 +1,7 @@
 """Scenes and observations: config -> ground truth -> what a solver may see.
 
 A :class:`Scene` holds the ground truth (sampled points, rotations,
-visibility). :func:`observe` turns it into :class:`solvers.Observations`,
+visibility). :func:`observe` turns it into :class:`mpe3d.solvers.Observations`,
 which hold no ground truth. Every random draw comes from its own stream of
 one ``SeedSequence``, so changing the solver (or the noise) never changes the
 points, the views or the visibility.
@@ -15,13 +15,13 @@ import numpy as np
 import trimesh
 from scipy.spatial.distance import cdist
 
-from solvers import Observations, View
-from solvers.base import require_memory
+from mpe3d.solvers import Observations, View
+from mpe3d.solvers.base import require_memory
 
 from . import noise as noise_mod
 from . import shapes, views, visibility
 from .config import RunConfig
-from .errors import MpeError
+from ..errors import MpeError
 
 STREAMS = ("sampling", "views", "visibility", "noise", "solver", "metrics")
 

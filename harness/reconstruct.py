@@ -26,11 +26,11 @@ from typing import Any, Sequence
 
 import numpy as np
 
-import solvers
-from solvers import Observations, View
-from solvers.degenerate import DegenerateWarning
+from mpe3d import solvers
+from mpe3d.solvers import Observations, View
+from mpe3d.solvers.degenerate import DegenerateWarning
 
-from .errors import MpeError, first_line
+from ..errors import MpeError, first_line
 from .files import atomic_write, write_together
 from .identity import code_identity
 
@@ -135,7 +135,7 @@ def _npz_members(path: Path) -> dict[str, np.ndarray]:
     object array fails here, naming the member, not later inside a solver."""
     import zipfile
 
-    from solvers.base import require_memory
+    from mpe3d.solvers.base import require_memory
 
     try:
         archive = np.load(path, allow_pickle=False)
@@ -325,7 +325,7 @@ def _check_dist(D: np.ndarray, n: int, where: str) -> np.ndarray:
 
 def observations_from(views: Sequence[dict], projections=None, source: str = "input",
                       projections_source: str = "projections"):
-    """Check user views and turn them into :class:`solvers.Observations`.
+    """Check user views and turn them into :class:`mpe3d.solvers.Observations`.
 
     Returns the observations and the point ids (index -> the user's id).
     """
@@ -459,7 +459,7 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
 
 
 def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, runtime: float) -> dict:
-    from solvers.stress import Stress
+    from mpe3d.solvers.stress import Stress
 
     stress = Stress(obs)
     rms = stress.view_rms(rec.points, np.asarray(rec.projections))

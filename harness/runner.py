@@ -1,14 +1,14 @@
 """Run sweeps: skip what is tracked, claim each run before computing it, log as results arrive.
 
 A run of a config is reused only when the code that computed it is the
-running code (:mod:`harness.identity`). Every config this sweep computes is
+running code (:mod:`mpe3d.harness.identity`). Every config this sweep computes is
 first *claimed*: a RUNNING child run in the store, owned by this process and
 kept alive by a heartbeat on the sweep's parent run. Another sweep that meets
 the claim waits for it instead of computing the config again, and a claim
 whose owner died is closed as KILLED and computed anew.
 
 Workers (joblib's loky processes, dask workers, or one thread for
-``--jobs 1``) compute whole runs and return :class:`~harness.execute.RunRecord`
+``--jobs 1``) compute whole runs and return :class:`~mpe3d.harness.execute.RunRecord`
 objects. The parent writes each one to the local journal, then logs it to
 MLflow, then drops it from the journal: an interrupt, a crash or a store
 outage never loses a computed result, and the next invocation replays what
@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
 from .config import RunConfig
-from .errors import MpeError, StoreError
+from ..errors import MpeError, StoreError
 from .execute import RunRecord, failed_record, run_record
 from .journal import Journal
 from .ownership import Heartbeat, Owner

@@ -15,14 +15,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from .errors import MpeError, suggest
+from ..errors import MpeError, suggest
 
 PROCEDURAL = ("torus", "box", "sphere", "cone")
 MESH_SUFFIXES = (".obj", ".ply", ".off", ".stl", ".glb", ".gltf")
 
 
 def _assets() -> Path:
-    return Path(str(resources.files("harness") / "assets" / "meshes"))
+    return Path(str(resources.files(__package__) / "assets" / "meshes"))
 
 
 @lru_cache(maxsize=1)

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 from .config import ALIASES, KEYS, RunConfig, _coerce, flatten, load_yaml, make_config
-from .errors import MpeError, suggest
+from ..errors import MpeError, suggest
 from .limits import check_run_count, check_run_memory
 from .shapes import check_shape
 
@@ -308,7 +308,7 @@ def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
 
     Every error names ``file:line``; a scale's override is reported at its
     own line. A grid over ``max_runs`` runs (default
-    :data:`~harness.limits.MAX_RUNS`) is refused before it is expanded, a
+    :data:`~mpe3d.harness.limits.MAX_RUNS`) is refused before it is expanded, a
     file over ``max_mb`` MiB before it is parsed, and a run that cannot fit
     in memory before anything runs.
     """

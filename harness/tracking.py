@@ -1,7 +1,7 @@
 """MLflow tracking: where runs live, which are already done, and logging results.
 
 Only the parent process uses this module: workers return
-:class:`~harness.execute.RunRecord` objects and the parent logs them here, one
+:class:`~mpe3d.harness.execute.RunRecord` objects and the parent logs them here, one
 by one as they arrive. The default store is MLflow's embedded SQLite database
 ``./mlflow.db`` with artifacts in ``./mlartifacts``; ``MLFLOW_TRACKING_URI`` or
 an explicit URI (``sqlite:///...``, ``http://host:port``) points elsewhere.
@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
-from .errors import MpeError, StoreError, first_line, suggest
+from ..errors import MpeError, StoreError, first_line, suggest
 from .identity import code_identity, git_commit
 from .ownership import STALE_S, Owner
 
@@ -329,7 +329,7 @@ class Tracker:
 
     def start_parent(self, experiment_id: str, sweep, tags: dict[str, str], owner: Owner) -> str:
         """The parent run of one sweep invocation."""
-        from . import __version__
+        from .. import __version__
 
         commit = git_commit()
         tags = {"mpe3d.sweep_file": str(sweep.path), "mpe3d.sweep_sha256": sweep.sha256,

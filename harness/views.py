@@ -64,7 +64,7 @@ def sphere_rotations(n_views: int, rng: np.random.Generator) -> np.ndarray:
     The directions are a Fibonacci lattice on the sphere (the paper's
     "equidistant views" for its raytrace-count figure), turned as a whole by a
     uniformly random rotation, each camera with a random roll. Row 2 of R^k is
-    minus the direction towards camera k, as in :func:`harness.visibility.raytrace`.
+    minus the direction towards camera k, as in :func:`mpe3d.harness.visibility.raytrace`.
     """
     k = np.arange(n_views)
     z = 1.0 - (2.0 * k + 1.0) / n_views

@@ -6,7 +6,7 @@ from importlib.resources import files
 
 import pandas as pd
 
-from harness.config import KEYS
+from mpe3d.harness.config import KEYS
 
 # How each solver is named in tables and figures: the paper's method is
 # "3DMPE (paper)", our exact solver is "ours (refine)".
@@ -61,7 +61,7 @@ def published(table: str) -> pd.DataFrame:
     learning-based rows (PSGN, 3D-LMNet) are Mandikal et al. (2018) as the
     paper quotes them; none of them were measured on our meshes.
     """
-    path = files("reports") / "data" / "paper_tables.csv"
+    path = files(__package__) / "data" / "paper_tables.csv"
     with path.open() as handle:
         data = pd.read_csv(handle)
     return data[data["table"] == table].reset_index(drop=True)

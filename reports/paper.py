@@ -14,7 +14,7 @@ from typing import Callable
 
 import pandas as pd
 
-from harness.identity import code_identity
+from mpe3d.harness.identity import code_identity
 
 from . import figures, tables
 from .claims import claims_table

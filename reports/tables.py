@@ -22,7 +22,7 @@ def summary(frame: pd.DataFrame, by: list[str], metrics: list[str]) -> pd.DataFr
 
 def category_of(shape: str) -> str:
     """The paper category a bundled shape stands in for (guitar -> rifle)."""
-    from harness.shapes import bundled_manifest
+    from mpe3d.harness.shapes import bundled_manifest
 
     entry = bundled_manifest().get(shape)
     return entry["paper_category"] if entry else shape

@@ -292,7 +292,7 @@ def _audit(uri, experiment, hashes):
 
 
 def _hashes(path):
-    from harness.sweep import load_sweep
+    from mpe3d.harness.sweep import load_sweep
 
     return [c.hash() for c in load_sweep(path).runs]
 

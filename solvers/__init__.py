@@ -1,4 +1,4 @@
-"""Solvers for the 3DMPE stress, behind one interface (see :mod:`solvers.base`)."""
+"""Solvers for the 3DMPE stress, behind one interface (see :mod:`mpe3d.solvers.base`)."""
 
 from .base import (Observations, Reconstruction, SOLVERS, View, check_observations,
                    get_solver, register, solve, solver_options, validate_options)

@@ -5,8 +5,8 @@ import sys
 from pathlib import Path
 
 
-from harness.config import make_config
-from harness.observe import build_scene, observe, seed_streams
+from mpe3d.harness.config import make_config
+from mpe3d.harness.observe import build_scene, observe, seed_streams
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -23,9 +23,9 @@ def scene_and_observations(**overrides):
 
 def mpe3d_command() -> list[str]:
     """The installed ``mpe3d`` console script, as a user runs it (falls back to
-    ``python -m harness.cli`` when the package is not installed)."""
+    ``python -m mpe3d.harness.cli`` when the package is not installed)."""
     script = Path(sys.executable).parent / "mpe3d"
-    return [str(script)] if script.exists() else [sys.executable, "-m", "harness.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "mpe3d.harness.cli"]
 
 
 def run_cli(*args, cwd=None, env=None):

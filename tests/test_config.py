@@ -3,8 +3,8 @@ import sys
 
 import pytest
 
-from harness.config import config_from_file, make_config, parse_override, read_yaml
-from harness.errors import MpeError
+from mpe3d.harness.config import config_from_file, make_config, parse_override, read_yaml
+from mpe3d.errors import MpeError
 
 
 def test_defaults_are_complete_and_documented():
@@ -38,7 +38,7 @@ def test_hash_is_canonical_and_stable_across_processes():
     b = make_config({"solver.max_iter": 100, "points": 256})
     assert a.hash() == b.hash()
     assert a.hash() != make_config({"points": 256}).hash()
-    code = ("from harness.config import make_config;"
+    code = ("from mpe3d.harness.config import make_config;"
             "print(make_config({'points': 256, 'solver.max_iter': 100}).hash())")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          env={"PYTHONHASHSEED": "123", "PATH": ""})

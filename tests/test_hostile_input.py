@@ -6,8 +6,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from harness.cli import main
-from harness.files import write_together
+from mpe3d.harness.cli import main
+from mpe3d.harness.files import write_together
 
 GOOD_XY = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]
 
@@ -179,7 +179,7 @@ def test_cloud_and_report_are_written_together(tmp_path):
         return real_replace(src, dst)
 
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr("harness.files.os.replace", failing_second_rename)
+        patch.setattr("mpe3d.harness.files.os.replace", failing_second_rename)
         with pytest.raises(OSError, match="rename failed"):
             write_together([(cloud, lambda t: t.write_text("new cloud")),
                             (report, lambda t: t.write_text("new report"))])

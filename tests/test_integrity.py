@@ -15,15 +15,15 @@ from pathlib import Path
 import numpy as np
 from mlflow.tracking import MlflowClient
 
-from harness.cli import main
-from harness.config import make_config
-from harness.execute import failed_record, run_record
-from harness.identity import code_identity, source_fingerprint
-from harness.journal import Journal
-from harness.ownership import Owner
-from harness.runner import plan_sweeps
-from harness.sweep import load_sweep
-from harness.tracking import CODE_TAG, HASH_TAG, PARENT_TAG, Tracker
+from mpe3d.harness.cli import main
+from mpe3d.harness.config import make_config
+from mpe3d.harness.execute import failed_record, run_record
+from mpe3d.harness.identity import code_identity, source_fingerprint
+from mpe3d.harness.journal import Journal
+from mpe3d.harness.ownership import Owner
+from mpe3d.harness.runner import plan_sweeps
+from mpe3d.harness.sweep import load_sweep
+from mpe3d.harness.tracking import CODE_TAG, HASH_TAG, PARENT_TAG, Tracker
 
 from .helpers import REPO, mpe3d_command, run_cli
 from .test_tracking import free_port, stop, wait_for
@@ -89,14 +89,14 @@ def test_a_code_change_is_detected_and_recomputed(tmp_path):
     first = run_cli("sweep", str(path), "--jobs", "1", "--tracking-uri", uri, "--no-artifacts")
     assert first.returncode == 0 and "2 finished" in first.stdout, first.stderr
     source, site = copy_checkout(tmp_path / "src"), tmp_path / "site"
-    command = [sys.executable, "-m", "harness.cli", "sweep", str(path), "--jobs", "1",
+    command = [sys.executable, "-m", "mpe3d.harness.cli", "sweep", str(path), "--jobs", "1",
                "--tracking-uri", uri, "--no-artifacts"]
 
-    # Comments, docstrings and reports are not code that makes numbers (run from the copy).
+    # Comments, docstrings and reports are not code that makes numbers (an installed copy).
     baseline = source / "solvers" / "baseline.py"
     baseline.write_text(baseline.read_text().replace('"""', '"""Edited docs. ', 1) + "\n# a note\n")
     (source / "reports" / "tables.py").write_text((source / "reports" / "tables.py").read_text() + "\nX = 1\n")
-    env = {**os.environ, "PYTHONPATH": str(source)}
+    env = {**os.environ, **install(source, site)}
     same = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert same.returncode == 0 and "nothing to run" in same.stdout, same.stdout + same.stderr
 

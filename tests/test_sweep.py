@@ -5,10 +5,10 @@ import textwrap
 
 import pytest
 
-from harness.cli import main
-from harness.config import make_config
-from harness.errors import MpeError
-from harness.sweep import load_sweep
+from mpe3d.harness.cli import main
+from mpe3d.harness.config import make_config
+from mpe3d.errors import MpeError
+from mpe3d.harness.sweep import load_sweep
 
 from .helpers import REPO
 
@@ -88,7 +88,7 @@ def test_hash_is_stable_across_processes_and_pinned():
     """The cache key must not depend on the process (PYTHONHASHSEED, dict order)
     or drift between releases by accident: a changed value means every tracked
     run would be recomputed, so it must be a deliberate SCHEMA_VERSION bump."""
-    code = ("from harness.config import make_config;"
+    code = ("from mpe3d.harness.config import make_config;"
             "print(make_config({'views': 5, 'visibility.k': 2, 'solver.max_iter': 7,"
             " 'noise.type': 'distance', 'noise.fraction': 0.25}).hash())")
     hashes = {subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
@@ -180,8 +180,8 @@ def test_shipped_sweeps_are_valid(path):
 
 
 def test_paper_sweeps_cover_every_experiment_of_the_recipe():
-    from reports.paper import RECIPE
-    from sweeps import paper_sweeps
+    from mpe3d.reports.paper import RECIPE
+    from mpe3d.sweeps import paper_sweeps
 
     sweeps = [load_sweep(p) for p in paper_sweeps()]
     assert sorted(s.name for s in sweeps) == sorted(e.name for e in RECIPE)

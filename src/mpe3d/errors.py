@@ -7,7 +7,7 @@ import difflib
 from typing import Any
 
 
-class MpeError(Exception):
+class MpeError(ValueError):
     """A user-facing error: its message is one line that names the culprit.
 
     ``key`` is the configuration key at fault, when there is one, so that a
