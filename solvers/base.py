@@ -1,12 +1,14 @@
 """The common solver interface: observations in, a reconstruction out.
 
-Every solver is a function ``solve(observations, *, init, random_state,
-**options) -> Reconstruction`` registered under a name with :func:`register`.
-Options are plain keyword arguments with defaults; :func:`validate_options`
-checks ``solver.<option>`` keys against that signature, in one place.
+Every solver is a function ``solve(observations, *, random_state, [init,]
+**options) -> Reconstruction`` registered under a name with :func:`register`,
+which also takes each option's rule (:class:`Interval`, :class:`Choice`),
+declared next to the function as scikit-learn's ``_parameter_constraints``
+are. Options are plain keyword arguments with defaults; :func:`validate_options`
+checks ``solver.<option>`` keys against their types and rules, in one place.
 
-Solvers import nothing from :mod:`harness` but :mod:`harness.errors` (the
-error type and its message helpers): what they may see is exactly an
+Solvers import nothing from the harness, only :mod:`mpe3d.errors` (the error
+type and its message helpers): what they may see is exactly an
 :class:`Observations`, which holds no ground truth.
 """
 
@@ -21,11 +23,12 @@ from typing import Any, Callable
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from harness.errors import MpeError, coerce, suggest
+from mpe3d.errors import MpeError, coerce, suggest
 
 from .linalg import classical_mds
 
 _RESERVED = ("observations", "init", "random_state")
+INITS = ("smart", "random")
 
 
 @dataclass(frozen=True)
@@ -91,25 +94,102 @@ class Reconstruction:
     points: np.ndarray  # (N, 3)
     projections: np.ndarray  # (K, 2, 3)
     stress: float  # Eq. 1 stress of ``points`` and ``projections``
-    stress_history: np.ndarray  # stress per iteration (full batch)
+    # The solver's objective (Eq. 1, or its robust form for refine's robust
+    # losses) at the start and after each iteration, over all pairs.
+    stress_history: np.ndarray
+    # Updates of the estimate by the iterative descent: len(stress_history) - 1
+    # for every solver, so 0 for the closed-form ones (baseline, factorize).
     iterations: int
     termination: str
     runtime_s: float = 0.0
     info: dict[str, Any] = field(default_factory=dict)
 
 
-SOLVERS: dict[str, Callable[..., Reconstruction]] = {}
+@dataclass(frozen=True)
+class Interval:
+    """An option's allowed range, as in scikit-learn's ``_parameter_constraints``:
+    ``kind`` (int or float) between ``low`` and ``high`` (``None``: unbounded),
+    each end included or not (``closed``: "both", "left", "right", "neither")."""
+
+    kind: type
+    low: float | None
+    high: float | None
+    closed: str = "both"
+
+    def __contains__(self, value) -> bool:
+        left = self.closed in ("both", "left")
+        right = self.closed in ("both", "right")
+        return ((self.low is None or value > self.low or (left and value == self.low))
+                and (self.high is None or value < self.high or (right and value == self.high)))
+
+    def __str__(self) -> str:
+        noun = "an integer" if self.kind is int else "a number"
+        if self.high is None:
+            return f"{noun} {'>=' if self.closed in ('both', 'left') else '>'} {self.low:g}"
+        if self.low is None:
+            return f"{noun} {'<=' if self.closed in ('both', 'right') else '<'} {self.high:g}"
+        left = "[" if self.closed in ("both", "left") else "("
+        right = "]" if self.closed in ("both", "right") else ")"
+        return f"{noun} in {left}{self.low:g}, {self.high:g}{right}"
 
 
-def register(name: str):
-    """Register ``func`` as solver ``name``; its keyword defaults are its options."""
+@dataclass(frozen=True)
+class Choice:
+    """An option that takes one of a few names."""
+
+    names: tuple[str, ...]
+
+    def __contains__(self, value) -> bool:
+        return value in self.names
+
+    def __str__(self) -> str:
+        return "one of " + ", ".join(self.names)
+
+
+@dataclass(frozen=True)
+class SolverSpec:
+    """A registered solver: its function, its options' rules, and whose it is.
+
+    ``paper`` is True for the paper's methods (its SGD and its MDS baseline)
+    and False for ours; ``uses_init`` says whether it takes a starting point
+    (``init``), so that callers do not hand one to a solver that ignores it.
+    """
+
+    name: str
+    func: Callable[..., Reconstruction]
+    constraints: dict[str, Interval | Choice]
+    paper: bool
+    summary: str
+    uses_init: bool
+
+    def options(self) -> dict[str, Any]:
+        """The options with their defaults, from the function's signature."""
+        params = inspect.signature(self.func).parameters
+        return {p.name: p.default for p in params.values()
+                if p.name not in _RESERVED and p.default is not inspect.Parameter.empty}
+
+
+SOLVERS: dict[str, SolverSpec] = {}
+
+
+def register(name: str, *, constraints: dict[str, Interval | Choice], paper: bool, summary: str):
+    """Register ``func`` as solver ``name``.
+
+    Its keyword defaults are its options; ``constraints`` gives each option's
+    rule and must cover every option, so that none goes unchecked.
+    """
     def decorator(func):
-        SOLVERS[name] = func
+        spec = SolverSpec(name, func, dict(constraints), paper, summary,
+                          "init" in inspect.signature(func).parameters)
+        missing = set(spec.options()) ^ set(constraints)
+        if missing:
+            raise TypeError(f"solver {name}: options and constraints differ on {sorted(missing)}")
+        SOLVERS[name] = spec
         return func
     return decorator
 
 
-def get_solver(name: str) -> Callable[..., Reconstruction]:
+def get_solver(name: str) -> SolverSpec:
     if name not in SOLVERS:
         raise MpeError(f"unknown solver '{name}' (known: {', '.join(sorted(SOLVERS))})",
                        key="solver.name", hint=suggest(name, SOLVERS))
@@ -118,26 +198,29 @@ def get_solver(name: str) -> Callable[..., Reconstruction]:
 
 def solver_options(name: str) -> dict[str, Any]:
     """The options of solver ``name`` with their defaults."""
-    params = inspect.signature(get_solver(name)).parameters
-    return {p.name: p.default for p in params.values()
-            if p.name not in _RESERVED and p.default is not inspect.Parameter.empty}
+    return get_solver(name).options()
 
 
 def validate_options(name: str, options: dict[str, Any]) -> dict[str, Any]:
-    """Fill in defaults and check every ``solver.<option>`` of solver ``name``."""
-    known = solver_options(name)
+    """Fill in defaults and check every ``solver.<option>`` of solver ``name``
+    against its type (that of its default) and its declared rule."""
+    spec = get_solver(name)
+    known = spec.options()
     out = dict(known)
     for key, value in options.items():
         if key not in known:
             listed = ", ".join(sorted(known)) or "none"
             raise MpeError(f"unknown option 'solver.{key}' for solver '{name}' (options: {listed})",
                            key=f"solver.{key}", hint=suggest(key, known))
-        default = known[key]
+        rule = spec.constraints[key]
         try:
-            out[key] = value if default is None else coerce(f"solver.{key}", value, type(default))
-        except MpeError:  # name the solver: the same option may differ between solvers
-            raise MpeError(f"solver.{key}: expected {type(default).__name__} for solver '{name}', "
-                           f"got {value!r}", key=f"solver.{key}") from None
+            out[key] = coerce(f"solver.{key}", value, type(known[key]))
+        except MpeError:
+            out[key] = None
+        if out[key] is None or out[key] not in rule:
+            # name the solver: the same option may differ between solvers
+            raise MpeError(f"solver.{key}: expected {rule} for solver '{name}', got {value!r}",
+                           key=f"solver.{key}") from None
     return out
 
 
@@ -179,12 +262,38 @@ def check_observations(obs: Observations) -> None:
 def solve(name: str, observations: Observations, *, init: str = "smart",
           random_state: int | np.random.Generator | None = None,
           **options: Any) -> Reconstruction:
-    """Run solver ``name`` and time it (``runtime_s`` is the solver alone)."""
-    func = get_solver(name)
+    """Run solver ``name`` on ``observations`` and time it.
+
+    Parameters
+    ----------
+    name : str
+        A registered solver (``mpe3d solvers`` lists them): ``sgd`` and
+        ``baseline`` are the paper's, ``factorize`` and ``refine`` ours.
+    observations : Observations
+        The views, and the projections in the fixed setting.
+    init : {"smart", "random"}, default "smart"
+        The starting point, for solvers that take one (``sgd``); the others
+        ignore it.
+    random_state : int, Generator or None, default None
+        Seeds everything random in the solver.
+    **options
+        The solver's options (``solver_options(name)``), checked against
+        their declared rules.
+
+    Returns
+    -------
+    Reconstruction
+        ``runtime_s`` is the solver alone, validation excluded.
+    """
+    spec = get_solver(name)
     options = validate_options(name, options)
     check_observations(observations)
+    if spec.uses_init:
+        if init not in INITS:
+            raise MpeError(f"init: expected one of {', '.join(INITS)}, got {init!r}", key="init")
+        options["init"] = init
     rng = np.random.default_rng(random_state)
     start = time.perf_counter()
-    result = func(observations, init=init, random_state=rng, **options)
+    result = spec.func(observations, random_state=rng, **options)
     result.runtime_s = time.perf_counter() - start
     return result

@@ -13,9 +13,8 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import shortest_path
 
-from harness.errors import MpeError
 
-from .base import Observations, Reconstruction, register, require_memory
+from .base import Choice, Interval, Observations, Reconstruction, register, require_memory
 from .linalg import classical_mds
 from .stress import Stress, project_rows
 
@@ -106,8 +105,15 @@ def mds_embedding(obs: Observations, method: str = "smacof", max_iter: int = 300
     return X
 
 
-@register("baseline")
-def solve_baseline(observations: Observations, *, init: str = "smart", random_state=None,
+_PARAMETER_CONSTRAINTS = {
+    "method": Choice(("smacof", "classical")),
+    "max_iter": Interval(int, 1, None),
+}
+
+
+@register("baseline", constraints=_PARAMETER_CONSTRAINTS, paper=True,
+          summary="the paper's baseline: MDS of the completed distance matrix")
+def solve_baseline(observations: Observations, *, random_state=None,
                    method: str = "smacof", max_iter: int = 300) -> Reconstruction:
     """MDS on the average of the per-view distance matrices (paper's baseline).
 
@@ -122,15 +128,13 @@ def solve_baseline(observations: Observations, *, init: str = "smart", random_st
 
     Each pair is averaged over the views where both of its points are visible.
     Pairs never seen together are filled by graph distances
-    (:func:`complete_distances`). ``init`` is ignored: the baseline is itself
-    the smart start. The returned projections are fitted to the embedding
+    (:func:`complete_distances`). There is no ``init``: the baseline is
+    itself the smart start. The returned projections are fitted to the embedding
     (:func:`fit_projections`), or the given ones in the fixed setting.
     """
-    if method not in ("smacof", "classical"):
-        raise MpeError(f"solver.method: '{method}' is not one of smacof, classical")
     X = mds_embedding(observations, method, max_iter, random_state)
     P = observations.projections if observations.fixed else fit_projections(X, observations, random_state)
     stress = Stress(observations).value(X, P)
     return Reconstruction(points=X, projections=P, stress=stress,
-                          stress_history=np.array([stress]), iterations=1,
+                          stress_history=np.array([stress]), iterations=0,
                           termination=f"MDS ({method})")

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
-from harness.errors import MpeError
+from mpe3d.errors import MpeError
 
 from .base import Observations
 

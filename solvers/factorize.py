@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Observations, Reconstruction, register
+from .base import Choice, Interval, Observations, Reconstruction, register
 from .degenerate import check_geometry, warn
 from .stress import Stress, project_rows
 
@@ -254,8 +254,15 @@ def metric_upgrade(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray
     return X, P
 
 
-@register("factorize")
-def solve_factorize(observations: Observations, *, init: str = "smart", random_state=None,
+_PARAMETER_CONSTRAINTS = {
+    "max_iter": Interval(int, 1, None),
+    "tol": Interval(float, 0.0, None),
+}
+
+
+@register("factorize", constraints=_PARAMETER_CONSTRAINTS, paper=False,
+          summary="ours: exact algebraic solution (per-view MDS, factorisation, metric upgrade)")
+def solve_factorize(observations: Observations, *, random_state=None,
                     max_iter: int = 2000, tol: float = 1e-13) -> Reconstruction:
     """Algebraic 3DMPE: exact on noise-free views (see module doc).
 
@@ -268,7 +275,9 @@ def solve_factorize(observations: Observations, *, init: str = "smart", random_s
         Stop the sweeps when the RMS residual improves by less than this
         fraction.
 
-    ``init`` is ignored: nothing here depends on a starting point.
+    There is no ``init``: nothing here depends on a starting point. The
+    result has no iterations on the stress (``iterations`` is 0); the ALS
+    sweeps are ``info["als_sweeps"]``.
     ``random_state`` seeds the Lanczos start vectors of the per-view MDS.
     """
     rng = np.random.default_rng(random_state)
@@ -277,13 +286,13 @@ def solve_factorize(observations: Observations, *, init: str = "smart", random_s
     if observations.fixed:
         X, _ = factorize_fixed(observations, images)
         P = np.asarray(observations.projections, dtype=float)
-        iterations, termination = 1, "closed form"
+        sweeps, termination = 0, "closed form"
     else:
         view, point, z = _stacked(observations, images)
-        X, L, rms, iterations = _affine_als(observations, view, point, z, max_iter, tol)
+        X, L, rms, sweeps = _affine_als(observations, view, point, z, max_iter, tol)
         X, P = metric_upgrade(X, L)
         termination = f"affine factorisation, RMS residual {rms:.2e}"
     stress = Stress(observations).value(X, P)
     return Reconstruction(points=X, projections=P, stress=stress,
-                          stress_history=np.array([stress]), iterations=iterations,
-                          termination=termination, info={"unplaced": unplaced})
+                          stress_history=np.array([stress]), iterations=0,
+                          termination=termination, info={"unplaced": unplaced, "als_sweeps": sweeps})

@@ -14,9 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import minimize
 
-from harness.errors import MpeError
 
-from .base import Observations, Reconstruction, register
+from .base import Choice, Interval, Observations, Reconstruction, register
 from .factorize import solve_factorize
 from .stress import LOSSES, Stress
 
@@ -80,8 +79,16 @@ def _objective(stress: Stress, shape, R0, fixed_P):
     return f, unpack
 
 
-@register("refine")
-def solve_refine(observations: Observations, *, init: str = "smart", random_state=None,
+_PARAMETER_CONSTRAINTS = {
+    "loss": Choice(LOSSES),
+    "max_iter": Interval(int, 0, None),
+    "tol": Interval(float, 0.0, None),
+}
+
+
+@register("refine", constraints=_PARAMETER_CONSTRAINTS, paper=False,
+          summary="ours: factorize, then full-batch L-BFGS on the stress (robust losses optional)")
+def solve_refine(observations: Observations, *, random_state=None,
                  loss: str = "l2", max_iter: int = 500, tol: float = 1e-12) -> Reconstruction:
     """Full-batch L-BFGS on the 3DMPE stress, started from ``factorize``.
 
@@ -96,15 +103,13 @@ def solve_refine(observations: Observations, *, init: str = "smart", random_stat
     tol : float, default 1e-12
         Relative decrease of the objective below which L-BFGS stops.
 
-    ``init`` is ignored: the start is ``factorize``'s exact algebraic
+    There is no ``init``: the start is ``factorize``'s exact algebraic
     solution. When the descent from it ends at a relative stress above 1e-10
     (noisy views, where the algebraic start can land in a poor basin), refine
     also descends from the paper's smart start and keeps the lower objective.
     The result is never worse than the start: if the minimiser ends higher,
     the start is returned.
     """
-    if loss not in LOSSES:
-        raise MpeError(f"solver.loss: '{loss}' is not one of {', '.join(LOSSES)}")
     rng = np.random.default_rng(random_state)
     start = solve_factorize(observations, random_state=rng)
     X0, P0 = start.points, start.projections
@@ -167,5 +172,7 @@ def _minimise(f, theta0: np.ndarray, history: list, max_iter: int, tol: float):
     if result.status == 2:  # L-BFGS-B's "ABNORMAL": its line search found no decrease
         termination = "no further decrease at numerical precision"
     if result.fun > history[0]:  # the line search should prevent this; never trust it
-        return theta0, history[0], int(result.nit), "kept the factorize start (no decrease)"
-    return result.x, float(result.fun), int(result.nit), termination
+        del history[1:]  # the start is kept: no iteration changed it
+        return theta0, history[0], 0, "kept the factorize start (no decrease)"
+    # scipy reports every accepted step to ``record``; one value per iteration.
+    return result.x, float(result.fun), len(history) - 1, termination

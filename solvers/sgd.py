@@ -35,9 +35,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from harness.errors import MpeError
 
-from .base import Observations, Reconstruction, register
+from .base import Choice, Interval, Observations, Reconstruction, register
 from .baseline import fit_projections, mds_embedding
 from .stress import Stress, project_rows
 
@@ -131,7 +130,17 @@ def _first_step(X: np.ndarray, g: np.ndarray) -> float:
     return 1e-4 * float(np.linalg.norm(X - X.mean(axis=0))) / ng if ng > 0 else 1e-6
 
 
-@register("sgd")
+_PARAMETER_CONSTRAINTS = {
+    "c": Interval(float, 0.0, 1.0, closed="right"),
+    "max_iter": Interval(int, 0, None),
+    "tol": Interval(float, 0.0, None),
+    "step": Choice(("mm", "bb")),
+    "baseline_method": Choice(("smacof", "classical")),
+}
+
+
+@register("sgd", constraints=_PARAMETER_CONSTRAINTS, paper=True,
+          summary="the paper's 3DMPE: minibatch SGD with an adaptive step from the smart start")
 def solve_sgd(observations: Observations, *, init: str = "smart", random_state=None,
               c: float = 1.0, max_iter: int = 300, tol: float = 1e-4, step: str = "mm",
               baseline_method: str = "smacof") -> Reconstruction:
@@ -152,12 +161,6 @@ def solve_sgd(observations: Observations, *, init: str = "smart", random_state=N
     baseline_method : {"smacof", "classical"}, default "smacof"
         The MDS behind the smart start.
     """
-    if step not in ("mm", "bb"):
-        raise MpeError(f"solver.step: '{step}' is not one of mm, bb")
-    if not 0.0 < c <= 1.0:
-        raise MpeError(f"solver.c: must be in (0, 1], got {c}")
-    if max_iter < 0:
-        raise MpeError(f"solver.max_iter: must be >= 0, got {max_iter}")
     rng = np.random.default_rng(random_state)
     stress = Stress(observations)
     fixed = observations.fixed

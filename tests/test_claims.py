@@ -5,7 +5,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from reports.claims import (CLAIMS, FAILS, HOLDS, NOT_APPLICABLE, NOT_ENOUGH, claims_table,
+from mpe3d.reports.claims import (CLAIMS, FAILS, HOLDS, NOT_APPLICABLE, NOT_ENOUGH, claims_table,
                             degrades_less, flat_runtime, good_where, linear_runtime,
                             most_in_three_views, smart_beats_random)
 

@@ -4,13 +4,13 @@ import warnings
 import numpy as np
 import pytest
 
-import solvers
-from harness.errors import MpeError
-from harness.metrics import evaluate
-from solvers import Observations, View
-from solvers.degenerate import DegenerateWarning
-from solvers.refine import _objective, _rotations, solve_refine
-from solvers.stress import Stress
+from mpe3d import solvers
+from mpe3d.errors import MpeError
+from mpe3d.harness.metrics import evaluate
+from mpe3d.solvers import Observations, View
+from mpe3d.solvers.degenerate import DegenerateWarning
+from mpe3d.solvers.refine import _objective, _rotations, solve_refine
+from mpe3d.solvers.stress import Stress
 
 from .helpers import scene_and_observations
 

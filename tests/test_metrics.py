@@ -3,8 +3,8 @@ import pytest
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial.distance import cdist
 
-from harness.metrics import (align_ransac4, align_rigid, chamfer, earth_movers, evaluate, roa)
-from harness.views import rotation
+from mpe3d.harness.metrics import (align_ransac4, align_rigid, chamfer, earth_movers, evaluate, roa)
+from mpe3d.harness.views import rotation
 
 
 def test_chamfer_is_zero_on_identical_clouds(rng):

@@ -1,7 +1,7 @@
 import numpy as np
 from scipy.spatial.distance import cdist, pdist
 
-from harness.noise import correspondence_noise, diameter, distance_noise
+from mpe3d.harness.noise import correspondence_noise, diameter, distance_noise
 
 
 def test_diameter_matches_brute_force(rng):

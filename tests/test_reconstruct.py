@@ -6,12 +6,12 @@ import pandas as pd
 import pytest
 import trimesh
 
-from harness.cli import main
-from harness.config import make_config
-from harness.errors import MpeError
-from harness.metrics import roa
-from harness.observe import build_scene, observe, seed_streams
-from harness.reconstruct import atomic_write, reconstruct, write_cloud
+from mpe3d.harness.cli import main
+from mpe3d.harness.config import make_config
+from mpe3d.errors import MpeError
+from mpe3d.harness.metrics import roa
+from mpe3d.harness.observe import build_scene, observe, seed_streams
+from mpe3d.harness.reconstruct import atomic_write, reconstruct, write_cloud
 
 from .helpers import run_cli
 
@@ -202,7 +202,7 @@ def test_the_api_takes_lists_of_views():
 
 
 def test_sparse_pair_stress_gradient_matches_finite_differences():
-    from solvers.stress import DENSE_LIMIT, Stress
+    from mpe3d.solvers.stress import DENSE_LIMIT, Stress
 
     sc, obs = scene(points=int(DENSE_LIMIT * 2.2))
     stress = Stress(obs)

@@ -7,9 +7,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from harness.tracking import Tracker
-from reports.load import published
-from sweeps import paper_sweeps
+from mpe3d.harness.tracking import Tracker
+from mpe3d.reports.load import published
+from mpe3d.sweeps import paper_sweeps
 
 from .helpers import SHARED, run_cli
 
@@ -139,7 +139,7 @@ def test_index_html_loads_with_all_images_in_a_real_browser(tiny_report):
 
 
 def test_runs_logged_before_a_key_existed_read_as_its_default():
-    from reports.load import runs as load_runs
+    from mpe3d.reports.load import runs as load_runs
 
     class Store:  # what runs_frame returns for runs logged before view_layout and min_views
         def runs_frame(self, experiment):
@@ -154,7 +154,7 @@ def test_runs_logged_before_a_key_existed_read_as_its_default():
 
 
 def test_a_report_says_which_code_made_its_numbers(tmp_path):
-    from reports import paper
+    from mpe3d.reports import paper
 
     def section(codes):
         frame = pd.DataFrame({"status": ["FINISHED"] * len(codes), "config_hash": list("abcd")[:len(codes)],

@@ -1,7 +1,7 @@
 import numpy as np
 
-from harness.config import make_config
-from harness.observe import build_scene, observe, seed_streams
+from mpe3d.harness.config import make_config
+from mpe3d.harness.observe import build_scene, observe, seed_streams
 
 from .helpers import scene_and_observations
 

@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 import trimesh
 
-from harness.errors import MpeError
-from harness.shapes import PROCEDURAL, bundled_manifest, load_shape, sample_points
+from mpe3d.errors import MpeError
+from mpe3d.harness.shapes import PROCEDURAL, bundled_manifest, load_shape, sample_points
 
 
 def test_bundle_covers_the_paper_categories():

@@ -1,12 +1,12 @@
 import numpy as np
 import pytest
 
-import solvers
-from harness.metrics import roa
-from harness.errors import MpeError
-from solvers.baseline import average_distances, complete_distances
-from solvers.sgd import align_to_projections, random_projections
-from solvers.stress import project_rows
+from mpe3d import solvers
+from mpe3d.harness.metrics import roa
+from mpe3d.errors import MpeError
+from mpe3d.solvers.baseline import average_distances, complete_distances
+from mpe3d.solvers.sgd import align_to_projections, random_projections
+from mpe3d.solvers.stress import project_rows
 
 from .helpers import scene_and_observations
 
@@ -123,7 +123,7 @@ def test_sgd_on_views_sharing_no_point_ends_finite():
     # reproduce-paper run failed with "SVD did not converge").
     config, scene, obs = scene_and_observations(shape="airplane", points=512, views=8,
                                                 projections="variable", **{"visibility.k": 1})
-    from harness.observe import seed_streams
+    from mpe3d.harness.observe import seed_streams
 
     rec = solvers.solve("sgd", obs, random_state=seed_streams(config["seed"])["solver"])
     assert np.all(np.isfinite(rec.points)) and np.all(np.isfinite(rec.projections))

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from solvers.stress import Stress, project_rows
+from mpe3d.solvers.stress import Stress, project_rows
 
 from .helpers import scene_and_observations
 

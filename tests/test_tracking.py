@@ -12,9 +12,9 @@ import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 
-from harness.cli import main
-from harness.execute import METRIC_KEYS
-from harness.sweep import load_sweep
+from mpe3d.harness.cli import main
+from mpe3d.harness.execute import METRIC_KEYS
+from mpe3d.harness.sweep import load_sweep
 
 from .helpers import run_cli
 

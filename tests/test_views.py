@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from harness.views import angle_bins, draw_angles, projections, rotation, rotations
+from mpe3d.harness.views import angle_bins, draw_angles, projections, rotation, rotations
 
 
 def test_rotations_are_proper_orthonormal(rng):
@@ -44,7 +44,7 @@ def test_bins_follow_the_paper():
 
 
 def test_sphere_layout_spreads_cameras_evenly(rng):
-    from harness.views import sphere_rotations
+    from mpe3d.harness.views import sphere_rotations
 
     R = sphere_rotations(5, rng)
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3), atol=1e-12)

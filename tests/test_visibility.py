@@ -1,8 +1,8 @@
 import numpy as np
 import trimesh
 
-from harness import visibility
-from harness.views import rotation
+from mpe3d.harness import visibility
+from mpe3d.harness.views import rotation
 
 
 def test_exact_visibility_counts(rng):
