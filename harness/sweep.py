@@ -27,9 +27,9 @@ import itertools
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Iterable, Mapping, Sequence
 
-from .config import ALIASES, KEYS, RunConfig, _coerce, flatten, load_yaml, make_config
+from .config import ALIASES, KEYS, RunConfig, _coerce, flatten, load_yaml, make_config, parse_override
 from ..errors import MpeError, suggest
 from .limits import check_run_count, check_run_memory
 from .shapes import check_shape
@@ -52,11 +52,12 @@ class Sweep:
     collapsed: int  # grid points that duplicated an earlier one and were dropped
     scale: str = FULL
     scales: tuple[str, ...] = (FULL,)  # every scale the file offers
+    overrides: tuple[str, ...] = ()  # KEY=VALUE given on the command line
 
     def label(self, config: RunConfig) -> str:
         """``views=4 projections=fixed seed=0``: what sets this run apart."""
-        flat = config.flat()
-        return " ".join(f"{key}={flat.get(key)}" for key in self.varying) or config.hash()
+        flat = config.flat()  # a solver's run names none of the other solvers' options
+        return " ".join(f"{key}={flat[key]}" for key in self.varying if key in flat) or config.hash()
 
 
 # One value an axis can take: resolved key -> (value, where it was written).
@@ -72,7 +73,8 @@ class _Source:
     def where(self, dotted: str | None) -> str:
         while dotted:  # the path itself, else its nearest written parent
             if dotted in self.lines:
-                return f"{self.path}:{self.lines[dotted]}"
+                line = self.lines[dotted]  # an int, or where an override was given
+                return line if isinstance(line, str) else f"{self.path}:{line}"
             dotted = dotted[:max(dotted.rfind("."), dotted.rfind("["), 0)]
         return str(self.path)
 
@@ -198,6 +200,45 @@ def _base(data: Mapping, src: _Source) -> Setting:
     return out
 
 
+def _apply_overrides(data: Mapping, lines: Mapping[str, Any], overrides: Sequence[str],
+                     src: _Source) -> tuple[dict, dict]:
+    """``KEY=VALUE`` sets a base key and ``grid.KEY=[a, b]`` replaces (or adds) a
+    grid axis, as if written in the file; errors name the override itself.
+
+    A key that varies in the file cannot be set in base: the override must
+    replace its axis (``grid.KEY=``), so that no setting is silently dropped.
+    """
+    data, lines = dict(data), dict(lines)
+    for text in overrides:
+        key, value = parse_override(text)
+        where = f"the command line ({text})"
+        if key in ("repeats", "seeds", "name"):
+            data[key], lines[key] = value, where
+            continue
+        section = "grid" if key.startswith("grid.") else "base"
+        key = key[len(section) + 1:] if key.startswith(f"{section}.") else key
+        resolved = _check_key(key, where, _Source(src.path, {where: where}))
+        if section == "grid" and not isinstance(value, list):
+            raise MpeError(f"grid.{key}: expected a list like [a, b], got {value!r} at {where}")
+        axes = {name: _axis_lists(data[name], name, src) for name in ("grid", "zip")
+                if isinstance(data.get(name), Mapping)}
+        varied = [f"{name}.{k}" for name, lists in axes.items() for k in lists if _resolve(k) == resolved]
+        if section == "base" and varied:
+            raise MpeError(f"{key} varies in the sweep ({src.where(varied[0])}): replace its axis "
+                           f"with grid.{key}=[...] at {where}")
+        if section == "grid" and any(v.startswith("zip.") for v in varied):
+            raise MpeError(f"{key} varies in a zip group ({src.where(varied[0])}); "
+                           f"it cannot become a grid axis at {where}")
+        current = flatten(data[section]) if isinstance(data.get(section), Mapping) else {}
+        kept = {k: v for k, v in current.items() if _resolve(k) != resolved}
+        base = flatten(data["base"]) if isinstance(data.get("base"), Mapping) else {}
+        if section == "grid" and any(_resolve(k) == resolved for k in base):
+            data["base"] = {k: v for k, v in base.items() if _resolve(k) != resolved}
+        data[section] = {**kept, key: value}
+        lines[f"{section}.{key}"] = where
+    return data, lines
+
+
 def _check_axes_disjoint(base: Setting, axes: list[list[Setting]], seeded: bool,
                          src: _Source) -> None:
     owner: dict[str, int] = {}
@@ -303,8 +344,12 @@ def _apply_scale(data: Mapping, lines: dict[str, int], scale: str, scales: Mappi
 
 
 def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
-               max_mb: float | None = None) -> Sweep:
+               max_mb: float | None = None, overrides: Sequence[str] = ()) -> Sweep:
     """Read, validate and expand a sweep file at one of its scales.
+
+    ``overrides`` (``KEY=VALUE`` for a base key, ``grid.KEY=[a, b]`` for a
+    grid axis, also ``repeats=N``) apply after the scale, as if written in the
+    file: they are validated alike and the configs hash the same.
 
     Every error names ``file:line``; a scale's override is reported at its
     own line. A grid over ``max_runs`` runs (default
@@ -322,6 +367,8 @@ def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
             raise src.error(f"unknown key '{key}'", str(key), suggest(str(key), TOP_LEVEL))
     scales = _scales(data, src)
     data, lines = _apply_scale(data, lines, scale, scales, src)
+    if overrides:
+        data, lines = _apply_overrides(data, lines, overrides, _Source(path, lines))
     src = _Source(path, lines)
     name = data.get("name", path.stem)
     if not isinstance(name, str) or not name.strip():
@@ -341,13 +388,27 @@ def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
         unique.setdefault(config.hash(), config)
     unique = list(unique.values())
     return Sweep(name=name.strip(), description=description.strip(), path=path,
-                 sha256=hashlib.sha256(path.read_bytes()).hexdigest(), runs=tuple(unique),
+                 sha256=hashlib.sha256(path.read_bytes() + "\n".join(overrides).encode()).hexdigest(),
+                 runs=tuple(unique),
                  varying=varying_keys(unique), collapsed=len(runs) - len(unique),
-                 scale=scale, scales=(FULL, *scales))
+                 scale=scale, scales=(FULL, *scales), overrides=tuple(overrides))
 
 
 def varying_keys(configs: Iterable[RunConfig]) -> tuple[str, ...]:
-    """The dotted keys whose values differ between ``configs``, in key order."""
+    """The dotted keys whose values differ between ``configs``, in key order.
+
+    A solver option varies only if the runs of one solver differ in it: that
+    other solvers lack it, or have another default, is not a difference.
+    """
     flats = [c.flat() for c in configs]
     keys = dict.fromkeys(k for flat in flats for k in flat)
-    return tuple(k for k in keys if len({repr(flat.get(k)) for flat in flats}) > 1)
+
+    def varies(key: str) -> bool:
+        option = key.startswith("solver.") and key != "solver.name"
+        seen: dict[object, set[str]] = {}
+        for flat in flats:
+            if key in flat:
+                seen.setdefault(flat["solver.name"] if option else None, set()).add(repr(flat[key]))
+        return any(len(values) > 1 for values in seen.values())
+
+    return tuple(k for k in keys if varies(k))
