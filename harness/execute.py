@@ -6,7 +6,6 @@ import os
 import socket
 import time
 import traceback
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -15,7 +14,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from mpe3d import solvers
-from mpe3d.solvers.degenerate import DegenerateWarning
+from mpe3d.solvers.degenerate import collect_notes
 
 from . import metrics as metrics_mod
 from .config import RunConfig
@@ -69,14 +68,10 @@ def _run(config: RunConfig) -> RunResult:
     streams = seed_streams(config["seed"])
     scene = build_scene(config, streams)
     observations, facts = observe(scene, config, streams)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always", DegenerateWarning)
+    with collect_notes() as notes:
         recon = solvers.solve(config.solver, observations, init=config["init"],
                               random_state=streams["solver"], **config.solver_options)
-    for w in caught:  # degenerate-input notes travel with the result; others go on as usual
-        if not issubclass(w.category, DegenerateWarning):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
-    facts["warnings"] = [str(w.message) for w in caught if issubclass(w.category, DegenerateWarning)]
+    facts["warnings"] = notes
     scores, aligned = metrics_mod.evaluate(scene.points, recon.points, config["align"],
                                            streams["metrics"])
     scores.update(stress=float(recon.stress), iterations=int(recon.iterations),
@@ -109,11 +104,12 @@ class RunRecord:
     facts: dict[str, str] = field(default_factory=dict)
     truth: np.ndarray | None = None  # ground truth, for the artifacts
     reconstruction: np.ndarray | None = None  # aligned to the truth
+    picture: np.ndarray | None = None  # comparison.png's bytes (uint8), for the artifacts
     error: str = ""
     traceback: str = ""
 
 
-ARRAY_FIELDS = ("stress_history", "truth", "reconstruction")  # kept out of JSON
+ARRAY_FIELDS = ("stress_history", "truth", "reconstruction", "picture")  # kept out of JSON
 
 
 def record_fields(record: RunRecord) -> dict[str, Any]:
@@ -154,12 +150,33 @@ def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
              "visible_per_view": ",".join(map(str, result.scene.visible_per_view))}
     if result.facts.get("warnings"):
         facts["warnings"] = " | ".join(result.facts["warnings"])
+    picture = _picture(result) if keep_clouds else None
+    if isinstance(picture, str):
+        facts["picture_error"], picture = picture, None
     return RunRecord(**_made_by(config), status="FINISHED", start_ms=int(start * 1000),
                      end_ms=int(time.time() * 1000),
                      metrics={**result.metrics, "wall_s": result.wall_s},
                      stress_history=np.asarray(recon.stress_history, dtype=float), facts=facts,
                      truth=result.scene.points if keep_clouds else None,
-                     reconstruction=result.aligned if keep_clouds else None)
+                     reconstruction=result.aligned if keep_clouds else None, picture=picture)
+
+
+def _title(result: RunResult) -> str:
+    config = result.config
+    return (f"{config['shape']}  N={config['points']}  K={config['views']}  {config['projections']}  "
+            f"{config.solver}  ROA={result.metrics['roa']:.3g}")
+
+
+def _picture(result: RunResult) -> np.ndarray | str:
+    """The run's comparison picture as PNG bytes, drawn in the worker so the
+    parent only stores it; a drawing failure is noted, never the run's."""
+    from .render import comparison_png
+
+    try:
+        png = comparison_png(result.scene.points, result.aligned, _title(result))
+    except Exception as exc:  # noqa: BLE001 - a picture is not worth a run
+        return f"{type(exc).__name__}: {exc}"
+    return np.frombuffer(png, dtype=np.uint8)
 
 
 def write_outputs(result: RunResult, out: Path) -> list[Path]:
@@ -172,8 +189,5 @@ def write_outputs(result: RunResult, out: Path) -> list[Path]:
     paths = [out / "ground_truth.ply", out / "reconstruction.ply", out / "comparison.png"]
     trimesh.PointCloud(result.scene.points).export(paths[0])
     trimesh.PointCloud(result.aligned).export(paths[1])
-    render_comparison(result.scene.points, result.aligned, paths[2],
-                      title=f"{result.config['shape']}  N={result.config['points']}  "
-                            f"K={result.config['views']}  {result.config.solver}  "
-                            f"roa={result.metrics['roa']:.3g}")
+    render_comparison(result.scene.points, result.aligned, paths[2], title=_title(result))
     return paths

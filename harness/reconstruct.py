@@ -19,7 +19,6 @@ import csv
 import json
 import tempfile
 import time
-import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -28,7 +27,7 @@ import numpy as np
 
 from mpe3d import solvers
 from mpe3d.solvers import Observations, View
-from mpe3d.solvers.degenerate import DegenerateWarning
+from mpe3d.solvers.degenerate import collect_notes
 
 from ..errors import MpeError, first_line
 from .files import atomic_write, write_together
@@ -398,7 +397,7 @@ def _check_random_state(random_state) -> None:
         return
     if isinstance(random_state, bool) or not isinstance(random_state, (int, np.integer)) \
             or random_state < 0:
-        raise MpeError(f"random_state (--seed): expected an integer >= 0 or a numpy Generator, "
+        raise MpeError(f"random_state: expected an integer >= 0 or a numpy Generator, "
                        f"got {random_state!r}")
 
 
@@ -406,9 +405,9 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
             loss: str = "l2", random_state=0) -> Problem:
     """Read and check every input of :func:`reconstruct` without solving anything."""
     if solver not in SOLVERS:
-        raise MpeError(f"--solver: '{solver}' is not one of {', '.join(SOLVERS)}")
+        raise MpeError(f"solver: '{solver}' is not one of {', '.join(SOLVERS)}")
     if loss != "l2" and solver != "refine":
-        raise MpeError(f"--loss {loss} needs --solver refine")
+        raise MpeError(f"loss='{loss}' needs solver='refine' (got solver='{solver}')")
     _check_random_state(random_state)
     source = str(views) if isinstance(views, (str, Path)) else "views"
     if isinstance(views, (str, Path)):
@@ -426,16 +425,12 @@ def solve(problem: Problem) -> Result:
     """Solve a prepared problem (paper Eq. 1) and report on the result."""
     options = {"loss": problem.loss} if problem.solver == "refine" else {}
     start = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:  # notes about the input go in the report
-        warnings.simplefilter("always", DegenerateWarning)
+    with collect_notes() as notes:  # notes about the input go in the report
         rec = solvers.solve(problem.solver, problem.observations,
                             random_state=problem.random_state, **options)
     runtime = time.perf_counter() - start
-    for w in caught:
-        if not issubclass(w.category, DegenerateWarning):
-            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     report = _report(problem.observations, rec, problem.ids, problem.solver, problem.loss, runtime)
-    report["warnings"] = [str(w.message) for w in caught if issubclass(w.category, DegenerateWarning)]
+    report["warnings"] = notes
     return Result(points=rec.points, ids=problem.ids, projections=np.asarray(rec.projections),
                   report=report)
 
@@ -532,10 +527,10 @@ def check_ids_fit(path: Path, ids: np.ndarray) -> None:
     if Path(path).suffix.lower() != ".ply" or not len(ids):
         return
     if ids.dtype.kind in "iu" and (ids.min() < -2 ** 31 or ids.max() >= 2 ** 31):
-        raise MpeError(f"--out {path}: point ids beyond 2**31 do not fit a PLY int; "
+        raise MpeError(f"{path}: point ids beyond 2**31 do not fit a PLY int; "
                        "write .csv or .npy instead")
     if ids.dtype.kind not in "iu" and max(len(str(i).encode()) for i in ids) > 255:
-        raise MpeError(f"--out {path}: point ids longer than 255 bytes do not fit a PLY list; "
+        raise MpeError(f"{path}: point ids longer than 255 bytes do not fit a PLY list; "
                        "write .csv or .npy instead")
 
 

@@ -8,7 +8,9 @@ views, the 2-view variable-setting ambiguity).
 
 from __future__ import annotations
 
+import contextlib
 import warnings
+from typing import Iterator
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -29,6 +31,22 @@ class DegenerateWarning(UserWarning):
 
 def warn(message: str) -> None:
     warnings.warn(message, DegenerateWarning, stacklevel=3)
+
+
+@contextlib.contextmanager
+def collect_notes() -> Iterator[list[str]]:
+    """Collect the :class:`DegenerateWarning` messages raised inside the block
+    (notes about the input, which travel with the result) into the yielded
+    list, filled when the block ends; other warnings go on as usual."""
+    notes: list[str] = []
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", DegenerateWarning)
+        yield notes
+    for w in caught:
+        if issubclass(w.category, DegenerateWarning):
+            notes.append(str(w.message))
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
 
 def _ids(values: np.ndarray, limit: int = 10) -> str:

@@ -197,7 +197,7 @@ def test_the_api_takes_lists_of_views():
     views = [{"ids": v.ids, "dist": v.distances} for v in obs.views]
     result = reconstruct(views, solver="factorize")
     assert roa(result.points, sc.points[result.ids]) < 1e-8
-    with pytest.raises(MpeError, match="--loss huber needs --solver refine"):
+    with pytest.raises(MpeError, match="loss=.huber. needs solver=.refine."):
         reconstruct(views, solver="factorize", loss="huber")
 
 
