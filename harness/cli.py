@@ -111,33 +111,6 @@ def _dry_run(sweeps) -> int:
     return 0
 
 
-def _nothing_to_do(plan, uri: str) -> str:
-    parts = [f"{plan.skipped_finished} finished"]
-    if plan.reused_stale:
-        parts.append(f"{plan.reused_stale} by other code, reused on purpose (--reuse-stale)")
-    if plan.skipped_failed:
-        parts.append(f"{plan.skipped_failed} failed (--rerun-failed retries them)")
-    return (f"{plan.sweep.name}: nothing to run: all {len(plan.sweep.runs)} runs are already "
-            f"tracked in {uri} ({', '.join(parts)}; --force reruns everything)")
-
-
-def _outcome(plan) -> str:
-    text = (f"{plan.sweep.name}: {plan.counts['FINISHED']} finished, {plan.counts['FAILED']} failed, "
-            f"{plan.skipped} skipped (already tracked) of {len(plan.sweep.runs)} runs")
-    if plan.stale:
-        text += (f"; {plan.stale} of them replaced runs computed by other code "
-                 "(--reuse-stale keeps such runs)")
-    if plan.reused_stale:
-        text += f"; {plan.reused_stale} runs by other code reused (--reuse-stale)"
-    if plan.elsewhere:
-        text += f"; {plan.elsewhere} computed meanwhile by another sweep on this store"
-    return text
-
-
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def _check_parallel(args) -> str:
     """The backend the flags ask for, after checking they fit together."""
     backend = args.backend or ("dask" if args.scheduler else "loky")
@@ -148,73 +121,37 @@ def _check_parallel(args) -> str:
     return backend
 
 
-def _recover(tracker, journal, quiet: bool) -> None:
-    """Replay what dead sweeps left in the journal, before anything is planned."""
-    from .runner import replay_journal
-
-    replayed = replay_journal(tracker, journal)
-    if replayed:
-        _say(f"replayed {replayed} result(s) from {journal.folder} into {tracker.uri}: an earlier "
-             "sweep computed them but could not log them", quiet)
-
-
 def run_sweeps(sweeps, args, tracker) -> tuple[list, int]:
-    """Plan ``sweeps`` against ``tracker``, run what is missing, print the outcome.
+    """:func:`runner.run_sweeps` with the command line's flags, printing as it goes."""
+    from .runner import run_sweeps as run
 
-    Returns the plans and the exit code: 0, 1 when a run failed, 130 when
-    interrupted (every run logged so far is kept). A store failure raises
-    :class:`StoreError` (exit 3) after the computed results are journaled.
-    """
-    from .journal import Journal
-    from .runner import plan_sweeps, run_plans
-
-    backend = _check_parallel(args)
-    journal = Journal()
-    _recover(tracker, journal, args.quiet)
-    plans = plan_sweeps(sweeps, tracker, rerun_failed=args.rerun_failed, force=args.force,
-                        reuse_stale=args.reuse_stale)
-    zombies = sum(plan.zombies for plan in plans)
-    if zombies:
-        _say(f"closed {zombies} run(s) left RUNNING by sweeps that died, as KILLED; "
-             "their configs are computed again", args.quiet)
-    for plan in plans:
-        if not plan.todo:
-            _say(_nothing_to_do(plan, tracker.uri), args.quiet)
-    if not any(plan.todo for plan in plans):
-        return plans, 0
     reporter = None
     if not args.quiet:
         from .progress import RichReporter
         reporter = RichReporter()
-    start = time.time()
-    previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill` stops as cleanly as Ctrl-C
-    try:
-        run_plans(plans, tracker, jobs=args.jobs, backend=backend, scheduler=args.scheduler,
-                  artifacts=not args.no_artifacts, reporter=reporter, journal=journal)
-    except KeyboardInterrupt:
-        print("mpe3d: interrupted; every run logged so far is kept: run the same command "
-              "to resume", file=sys.stderr)
-        return plans, 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
-    for plan in plans:
-        if plan.todo:
-            _say(_outcome(plan), args.quiet)
-        for label, error in plan.failures[:5]:
-            print(f"mpe3d: run failed: {label}: {error}", file=sys.stderr)
-        if len(plan.failures) > 5:
-            print(f"mpe3d: ... and {len(plan.failures) - 5} more failed runs "
-                  f"(`mpe3d runs '{plan.sweep.name}'` lists them)", file=sys.stderr)
-    _say(f"{time.time() - start:.1f} s; tracked in {tracker.uri} "
-         f"(`mpe3d runs NAME` prints a table, `mpe3d ui` opens the MLflow UI)", args.quiet)
-    return plans, 1 if any(plan.failures for plan in plans) else 0
+    plans, code = run(sweeps, tracker, jobs=args.jobs, backend=_check_parallel(args),
+                      scheduler=args.scheduler, artifacts=not args.no_artifacts,
+                      rerun_failed=args.rerun_failed, force=args.force, reuse_stale=args.reuse_stale,
+                      reporter=reporter, say=lambda text: _say(text, args.quiet),
+                      warn=lambda text: print(f"mpe3d: {text}", file=sys.stderr, flush=True))
+    return plans, code
+
+
+def _split_overrides(tokens: list[str]) -> tuple[list[str], list[str]]:
+    """``FILE... KEY=VALUE...``: a token with ``=`` that is not an existing file is an override."""
+    files = [t for t in tokens if "=" not in t or Path(t).exists()]
+    overrides = [t for t in tokens if t not in files]
+    if not files:
+        raise MpeError(f"no sweep file given, only overrides: {' '.join(overrides)}")
+    return files, overrides
 
 
 def cmd_sweep(args) -> int:
     from .sweep import load_sweep
 
-    sweeps = [load_sweep(path, args.scale, args.max_runs, args.max_yaml_mb)
-              for path in args.files]  # all valid before any run
+    files, overrides = _split_overrides(args.files)
+    sweeps = [load_sweep(path, args.scale, args.max_runs, args.max_yaml_mb, overrides)
+              for path in files]  # all valid before any run
     _check_parallel(args)
     if args.dry_run:
         return _dry_run(sweeps)
@@ -276,7 +213,22 @@ def _sweep_section(sweep, tracker):
     frame = runs(tracker, sweep.name, hashes=[c.hash() for c in sweep.runs]) \
         if tracker.experiment_id(sweep.name, create=False) else _empty_runs()
     return Section(sweep.name, frame, sweep.description, f"{sweep.path.name} --scale {sweep.scale}",
-                   planned=len(sweep.runs), varying=sweep.varying)
+                   planned=len(sweep.runs), varying=sweep.varying, client=tracker.client,
+                   full_runs_per_group=_full_runs_per_group(sweep))
+
+
+def _full_runs_per_group(sweep) -> int | None:
+    """Runs per compared setting when ``sweep`` runs at its full scale (None: it does)."""
+    import pandas as pd
+
+    from mpe3d.reports.claims import runs_per_group
+
+    from .sweep import FULL, load_sweep
+
+    if sweep.scale == FULL:
+        return None
+    full = load_sweep(sweep.path, FULL, max_runs=10**7, overrides=sweep.overrides)
+    return runs_per_group(pd.DataFrame([c.flat() for c in full.runs]), full.varying)
 
 
 def _empty_runs():
@@ -294,14 +246,14 @@ def _wrote(report) -> None:
 
 def cmd_report(args) -> int:
     from mpe3d.reports import paper
-    from mpe3d.reports.load import runs
+    from mpe3d.reports.load import finished, runs
 
     from .tracking import Tracker
 
     if args.sweep:  # the file first: its errors are the user's to fix, whatever the store
         from .sweep import load_sweep
 
-        sweep = load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb)
+        sweep = load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb, args.overrides)
     tracker = Tracker(args.tracking_uri, create=False)
     _note_journal(tracker)
     if args.sweep:
@@ -310,10 +262,19 @@ def cmd_report(args) -> int:
         known = {s.name: s for s in map(_load_paper_sweep, _paper_sweep_files())}
         sweep = known.get(args.experiment)
         section = paper.Section(args.experiment, runs(tracker, args.experiment),
-                                sweep.description if sweep else "", varying=sweep.varying if sweep else ())
+                                sweep.description if sweep else "", varying=sweep.varying if sweep else (),
+                                client=tracker.client)
+    if finished(section.frame).empty:
+        what = f"sweep {args.sweep} at scale {args.scale}" if args.sweep else f"experiment {args.experiment}"
+        print(f"mpe3d: no finished runs of {what} in {tracker.uri}: nothing to report "
+              f"(run it first: mpe3d sweep FILE)", file=sys.stderr)
+        return 1
     report = _write_report(Path(args.out), [section], f"mpe3d report: {section.name}",
                            [f"Runs from {tracker.uri}."])
     _wrote(report)
+    if report.empty:
+        print(f"mpe3d: {len(report.empty)} table(s) had no rows: {', '.join(report.empty)}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -415,11 +376,46 @@ def cmd_ui(args) -> int:
     root = artifact_root(uri)
     if root:
         command += ["--artifacts-destination", root]
-    print(f"MLflow UI on {uri} at http://127.0.0.1:{args.port} (Ctrl-C stops it)", flush=True)
+    print(f"MLflow UI at http://127.0.0.1:{args.port}, serving the store {uri}"
+          + (f" (artifacts {root})" if root else "") + "; Ctrl-C stops it", flush=True)
+    # Its own process group: the server forks workers, and a signal to us must reach them all.
+    server = subprocess.Popen(command, start_new_session=True)
+
+    def stop(signum, frame):
+        raise KeyboardInterrupt
+
+    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        return subprocess.run(command).returncode
+        return server.wait()
     except KeyboardInterrupt:
+        _stop_group(server)
         return 0
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+def _stop_group(process, grace_s: float = 10.0) -> None:
+    """SIGTERM to ``process``'s whole group, then SIGKILL to whatever outlives ``grace_s``."""
+    import subprocess
+
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            return
+        try:
+            process.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            continue
+        # the leader is gone; its workers may linger a moment
+        deadline = time.time() + grace_s
+        while time.time() < deadline:
+            try:
+                os.killpg(process.pid, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.1)
 
 
 def _add_run_options(parser) -> None:
@@ -430,8 +426,7 @@ def _add_run_options(parser) -> None:
                         help="loky (one machine, default) or dask (a cluster)")
     parser.add_argument("--scheduler", metavar="ADDRESS",
                         help="dask scheduler, e.g. tcp://10.0.0.5:8786 (default: a local cluster)")
-    parser.add_argument("--tracking-uri", metavar="URI",
-                        help="MLflow store (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)")
+    parser.add_argument("--tracking-uri", metavar="URI", help=TRACKING_HELP)
     parser.add_argument("--rerun-failed", action="store_true", help="retry runs that FAILED before")
     parser.add_argument("--force", action="store_true", help="rerun every run, even FINISHED ones")
     parser.add_argument("--reuse-stale", action="store_true",
@@ -457,6 +452,9 @@ def _add_sweep_limits(parser) -> None:
     _add_yaml_limit(parser)
 
 
+TRACKING_HELP = "MLflow store (default: $MLFLOW_TRACKING_URI, else sqlite:///mlflow.db)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="mpe3d", description="3D multi-perspective embedding: "
                      "rebuild a 3D point cloud from partial 2D views.")
@@ -465,7 +463,8 @@ def build_parser() -> argparse.ArgumentParser:
                          formatter_class=argparse.RawDescriptionHelpFormatter,
                          epilog="keys (KEY=VALUE; solver=NAME is short for solver.name=NAME,\n"
                                 "solver options are solver.<option>=VALUE):\n" + describe_keys())
-    run.add_argument("overrides", nargs="*", metavar="KEY=VALUE")
+    run.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                     help="run keys (listed below), e.g. shape=lamp points=1024 solver=refine")
     run.add_argument("--config", metavar="FILE.yaml", help="YAML file of keys (overrides win)")
     run.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     run.add_argument("--out", metavar="DIR", help="write ground_truth.ply, reconstruction.ply and a PNG")
@@ -475,7 +474,9 @@ def build_parser() -> argparse.ArgumentParser:
                            description="Expand each sweep file into a grid of runs, skip the runs "
                            "already FINISHED in its MLflow experiment, and run the rest in parallel. "
                            "Exit code 1 if a run failed, 2 on bad input.")
-    sweep.add_argument("files", nargs="+", metavar="FILE.yaml")
+    sweep.add_argument("files", nargs="+", metavar="FILE.yaml [KEY=VALUE ...]",
+                       help="sweep files, then overrides for all of them: KEY=VALUE sets a base "
+                       "key, grid.KEY=[a,b] replaces a grid axis, repeats=N")
     sweep.add_argument("--scale", default="full", metavar="NAME",
                        help="one of the files' scales, e.g. quick (default: full, the file as written)")
     _add_run_options(sweep)
@@ -502,17 +503,20 @@ def build_parser() -> argparse.ArgumentParser:
     which.add_argument("--experiment", metavar="NAME", help="every latest run of this experiment")
     which.add_argument("--sweep", metavar="FILE.yaml", help="the runs of this sweep file (at --scale)")
     report.add_argument("--scale", default="full", metavar="NAME", help="with --sweep (default: full)")
+    report.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                        help="with --sweep: the overrides the sweep ran with")
     report.add_argument("--out", required=True, metavar="DIR", help="report folder")
-    report.add_argument("--tracking-uri", metavar="URI")
+    report.add_argument("--tracking-uri", metavar="URI", help=TRACKING_HELP)
     _add_sweep_limits(report)
     report.set_defaults(func=cmd_report)
     runs = sub.add_parser("runs", help="print the runs of an experiment as a table")
-    runs.add_argument("experiment", metavar="EXPERIMENT")
-    runs.add_argument("--format", choices=("md", "csv"), default="md")
+    runs.add_argument("experiment", metavar="EXPERIMENT", help="the experiment: a sweep's name")
+    runs.add_argument("--format", choices=("md", "csv"), default="md",
+                      help="md: a Markdown table (default); csv: for a file or pandas")
     runs.add_argument("--all", action="store_true", help="show every param, not only those that vary")
     runs.add_argument("--history", action="store_true",
                       help="every run ever made, not only the latest of each config")
-    runs.add_argument("--tracking-uri", metavar="URI")
+    runs.add_argument("--tracking-uri", metavar="URI", help=TRACKING_HELP)
     runs.set_defaults(func=cmd_runs)
     rec = sub.add_parser("reconstruct", help="rebuild a 3D cloud from your own keypoints or "
                          "distance matrices", description="Read matched 2D keypoints (CSV view,point,x,y; "
@@ -523,14 +527,15 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--projections", metavar="FILE",
                      help="known projections (.npy or .json, K matrices 2x3 or 3x3): the fixed setting")
     rec.add_argument("--solver", default="refine", help="refine (default), factorize or sgd")
-    rec.add_argument("--loss", default="l2", choices=("l2", "huber"), help="refine's loss (default l2)")
+    rec.add_argument("--loss", default="l2", choices=("l2", "huber", "soft_l1"),
+                     help="refine's loss: l2 (default), or huber or soft_l1 against outliers")
     rec.add_argument("--report", metavar="FILE.json", help="write stress, per-view residuals, "
                      "unplaced ids, projections and runtime as JSON")
     rec.add_argument("--seed", type=int, default=0, help="random state (default 0)")
     rec.set_defaults(func=cmd_reconstruct)
     ui = sub.add_parser("ui", help="start the MLflow UI on the tracking store, on 127.0.0.1")
-    ui.add_argument("--tracking-uri", metavar="URI")
-    ui.add_argument("--port", type=int, default=5000)
+    ui.add_argument("--tracking-uri", metavar="URI", help=TRACKING_HELP)
+    ui.add_argument("--port", type=int, default=5000, help="the port on 127.0.0.1 (default 5000)")
     ui.set_defaults(func=cmd_ui)
     sub.add_parser("shapes", help="list the bundled and procedural shapes").set_defaults(func=cmd_shapes)
     sub.add_parser("solvers", help="list solvers and their options").set_defaults(func=cmd_solvers)

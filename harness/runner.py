@@ -23,6 +23,7 @@ import logging
 import os
 import queue
 import random
+import signal
 import threading
 import time
 from collections import deque
@@ -421,3 +422,117 @@ def _close(tracker, plan: Plan, status: str) -> None:
         "runs_finished": plan.counts["FINISHED"], "runs_failed": plan.counts["FAILED"],
         "runs_skipped": plan.skipped, "runs_elsewhere": plan.elsewhere,
         "runs_stale_replaced": plan.stale, "wall_s": time.time() - plan.started})
+
+
+# -- a whole invocation: recover, plan, run, summarise ------------------------------
+
+def _nothing_to_do(plan: Plan, uri: str) -> str:
+    parts = [f"{plan.skipped_finished} finished"]
+    if plan.reused_stale:
+        parts.append(f"{plan.reused_stale} by other code, reused on purpose (--reuse-stale)")
+    if plan.skipped_failed:
+        parts.append(f"{plan.skipped_failed} failed (--rerun-failed retries them)")
+    return (f"{plan.sweep.name}: nothing to run: all {len(plan.sweep.runs)} runs are already "
+            f"tracked in {uri} ({', '.join(parts)}; --force reruns everything)")
+
+
+def _outcome(plan: Plan) -> str:
+    text = (f"{plan.sweep.name}: {plan.counts['FINISHED']} finished, {plan.counts['FAILED']} failed, "
+            f"{plan.skipped} skipped (already tracked) of {len(plan.sweep.runs)} runs")
+    if plan.stale:
+        text += (f"; {plan.stale} of them replaced runs computed by other code "
+                 "(--reuse-stale keeps such runs)")
+    if plan.reused_stale:
+        text += f"; {plan.reused_stale} runs by other code reused (--reuse-stale)"
+    if plan.elsewhere:
+        text += f"; {plan.elsewhere} computed meanwhile by another sweep on this store"
+    return text
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _quiet(text: str) -> None:
+    pass
+
+
+def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "loky",
+               scheduler: str | None = None, artifacts: bool = True, rerun_failed: bool = False,
+               force: bool = False, reuse_stale: bool = False, reporter: Reporter | None = None,
+               say=_quiet, warn=_quiet) -> tuple[list[Plan], int]:
+    """Replay the journal, plan ``sweeps`` against ``tracker``, run what is
+    missing and summarise; ``say`` and ``warn`` receive the lines to show.
+
+    Returns the plans and the exit code: 0, 1 when a run failed, 130 when
+    interrupted (Ctrl-C or SIGTERM; every run logged so far is kept). A store
+    failure raises :class:`StoreError` (exit 3) after the computed results are
+    journaled. With ``artifacts``, each parent run also gets its sweep's
+    summary table and figures.
+    """
+    journal = Journal()
+    replayed = replay_journal(tracker, journal)
+    if replayed:
+        say(f"replayed {replayed} result(s) from {journal.folder} into {tracker.uri}: an earlier "
+            "sweep computed them but could not log them")
+    plans = plan_sweeps(sweeps, tracker, rerun_failed=rerun_failed, force=force,
+                        reuse_stale=reuse_stale)
+    zombies = sum(plan.zombies for plan in plans)
+    if zombies:
+        say(f"closed {zombies} run(s) left RUNNING by sweeps that died, as KILLED; "
+            "their configs are computed again")
+    for plan in plans:
+        if not plan.todo:
+            say(_nothing_to_do(plan, tracker.uri))
+    if not any(plan.todo for plan in plans):
+        return plans, 0
+    start = time.time()
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill` stops as cleanly as Ctrl-C
+    try:
+        run_plans(plans, tracker, jobs=jobs, backend=backend, scheduler=scheduler,
+                  artifacts=artifacts, reporter=reporter, journal=journal)
+        if artifacts:
+            for plan in plans:
+                if plan.parent_id:
+                    _log_summary(tracker, plan, warn)
+    except KeyboardInterrupt:
+        warn("interrupted; every run logged so far is kept: run the same command to resume")
+        return plans, 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+    for plan in plans:
+        if plan.todo:
+            say(_outcome(plan))
+        for label, error in plan.failures[:5]:
+            warn(f"run failed: {label}: {error}")
+        if len(plan.failures) > 5:
+            warn(f"... and {len(plan.failures) - 5} more failed runs "
+                 f"(`mpe3d runs '{plan.sweep.name}'` lists them)")
+    say(f"{time.time() - start:.1f} s; tracked in {tracker.uri} "
+        f"(`mpe3d runs NAME` prints a table, `mpe3d ui` opens the MLflow UI)")
+    return plans, 1 if any(plan.failures for plan in plans) else 0
+
+
+def _log_summary(tracker, plan: Plan, warn) -> None:
+    """The sweep's own report (summary table and figures) on its parent run,
+    where MLflow's UI shows it; a failure to draw it costs no run."""
+    import tempfile
+    from pathlib import Path
+
+    from mpe3d.reports import paper
+    from mpe3d.reports.load import runs
+
+    try:
+        frame = runs(tracker, plan.sweep.name, hashes=[c.hash() for c in plan.sweep.runs])
+        section = paper.Section(plan.sweep.name, frame, plan.sweep.description,
+                                f"{plan.sweep.path.name} --scale {plan.sweep.scale}",
+                                planned=len(plan.sweep.runs), varying=plan.sweep.varying)
+        with tempfile.TemporaryDirectory(prefix="mpe3d-summary-") as folder:
+            paper.write(Path(folder), [section], f"mpe3d sweep: {plan.sweep.name}", claims=False,
+                        pdf=False)
+            tracker.log_parent_artifacts(plan.parent_id, folder)
+    except StoreError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - the runs are logged; the summary is a bonus
+        warn(f"{plan.sweep.name}: could not log the summary report on the parent run: "
+             f"{type(exc).__name__}: {exc}")

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterator
 
+import numpy as np
+
 from ..errors import MpeError, StoreError, first_line, suggest
 from .identity import code_identity, git_commit
 from .ownership import STALE_S, Owner
@@ -424,8 +426,15 @@ class Tracker:
 
                 trimesh.PointCloud(record.truth).export(folder / "ground_truth.ply")
                 trimesh.PointCloud(record.reconstruction).export(folder / "reconstruction.ply")
+            if artifacts and record.picture is not None:  # what MLflow's UI can show
+                (folder / "comparison.png").write_bytes(np.asarray(record.picture, np.uint8).tobytes())
             if any(folder.iterdir()):
                 self.client.log_artifacts(run_id, str(folder))
+
+    def log_parent_artifacts(self, run_id: str, folder) -> None:
+        """A sweep's summary report (``index.html``, tables, figures) on its parent run."""
+        with _store_errors(self.uri, "log the summary report"):
+            self.client.log_artifacts(run_id, str(folder), "summary")
 
     def runs_frame(self, experiment: str, history: bool = False):
         """The child runs of ``experiment`` as a DataFrame, with ``status``,

@@ -79,7 +79,12 @@ def test_listing_commands():
     shapes = run_cli("shapes")
     assert shapes.returncode == 0 and "guitar" in shapes.stdout and "rifle" in shapes.stdout
     listed = run_cli("solvers")
-    assert listed.returncode == 0 and "sgd" in listed.stdout and "baseline" in listed.stdout
+    assert listed.returncode == 0
+    paper, ours = listed.stdout.split("our solvers:")
+    assert paper.startswith("the paper's solvers:")
+    assert "  sgd " in paper and "  baseline " in paper and "refine" not in paper
+    assert "  refine " in ours and "  factorize " in ours and "  sgd " not in ours
+    assert "solver.c=1.0  (a number in (0, 1])" in paper  # each option with its rule
 
 
 def test_too_many_points_for_memory_is_one_line():
@@ -109,3 +114,19 @@ def test_unwritable_out_dir_is_one_line(tmp_path):
     out = run_cli("run", "shape=torus", "points=40", "--out", str(blocker / "sub"))
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert "cannot write outputs to" in out.stderr
+
+
+def test_every_option_of_every_subcommand_has_a_one_line_help():
+    import argparse
+
+    from mpe3d.harness.cli import build_parser
+
+    (commands,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
+    for name, parser in commands.choices.items():
+        assert commands._choices_actions and parser.description or any(
+            c.dest == name and c.help for c in commands._choices_actions), name
+        for action in parser._actions:
+            if isinstance(action, argparse._HelpAction):
+                continue
+            label = f"mpe3d {name} {'/'.join(action.option_strings) or action.dest}"
+            assert action.help and "\n" not in action.help.strip(), label

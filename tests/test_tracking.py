@@ -9,6 +9,7 @@ import time
 import urllib.request
 
 import pandas as pd
+import psutil
 import pytest
 from mlflow.tracking import MlflowClient
 
@@ -83,7 +84,7 @@ def test_sweep_logs_every_run_finished(tracked):
         assert len(history) == run.data.metrics["iterations"] + 1
         assert min(m.value for m in history) == pytest.approx(run.data.metrics["stress"])
         files = {a.path for a in client.list_artifacts(run.info.run_id)}
-        assert files == {"reconstruction.ply", "ground_truth.ply"}
+        assert files == {"reconstruction.ply", "ground_truth.ply", "comparison.png"}
 
 
 def test_rerun_starts_nothing_and_says_so(tracked, capsys):
@@ -198,17 +199,34 @@ def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
                f"sqlite:///{tmp_path}/mlflow.db")[0] == 0
     port = free_port()
     from .helpers import mpe3d_command
+    # As a user starts it: in our process group, so only `kill PID` can stop it cleanly.
     ui = subprocess.Popen([*mpe3d_command(), "ui", "--port", str(port)], cwd=tmp_path,
-                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                          start_new_session=True)
+                          stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
     try:
         wait_for(f"http://127.0.0.1:{port}/health", ui)
-        request = urllib.request.Request(
-            f"http://127.0.0.1:{port}/api/2.0/mlflow/experiments/get-by-name?experiment_name=two")
-        with urllib.request.urlopen(request, timeout=10) as answer:
+        base = f"http://127.0.0.1:{port}"
+        with urllib.request.urlopen(f"{base}/api/2.0/mlflow/experiments/get-by-name?"
+                                    "experiment_name=two", timeout=10) as answer:
             assert b'"two"' in answer.read()
+        # The picture of a child run, as the UI fetches it.
+        kids, parents = children(MlflowClient(f"sqlite:///{tmp_path}/mlflow.db"), "two")
+        with urllib.request.urlopen(f"{base}/get-artifact?path=comparison.png&"
+                                    f"run_uuid={kids[0].info.run_id}", timeout=10) as answer:
+            assert answer.read(8) == b"\x89PNG\r\n\x1a\n"
+        with urllib.request.urlopen(f"{base}/get-artifact?path=summary/index.html&"
+                                    f"run_uuid={parents[0].info.run_id}", timeout=10) as answer:
+            assert b"<table" in answer.read()
+        server = psutil.Process(ui.pid).children(recursive=True)
+        assert server, "the UI started no server"
     finally:
-        stop(ui)
+        ui.send_signal(signal.SIGTERM)  # `kill PID`
+        try:
+            ui.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            stop(ui)
+    assert "serving the store sqlite:///" in ui.stdout.read()
+    gone, alive = psutil.wait_procs(server, timeout=15)
+    assert not alive, f"left behind: {[p.pid for p in alive]}"
     busy = socket.socket()
     busy.bind(("127.0.0.1", 0))
     busy.listen()
