@@ -10,6 +10,7 @@ numbers behind it, once for the paper's 3DMPE (``sgd``) and once for our
 
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 from functools import partial
 from typing import Callable
@@ -36,9 +37,24 @@ class Claim:
     statement: str  # the paper's claim, in its words or close to them
     source: str  # where the paper makes it
     experiment: str  # the MLflow experiment (sweep name) whose runs test it
-    test: str  # the criterion, in words
-    check: Callable[[pd.DataFrame, str], Verdict]
+    check: partial  # a criterion below with its thresholds bound
     solvers: tuple[str, ...] = field(default=("sgd", "refine"))
+
+    @property
+    def test(self) -> str:
+        """The criterion in words, written from the thresholds it is bound to."""
+        func = self.check.func
+        params = {name: p.default for name, p in inspect.signature(func).parameters.items()
+                  if p.default is not inspect.Parameter.empty}
+        return func.describe(**{**params, **self.check.keywords})
+
+
+def criterion(describe: Callable[..., str]):
+    """Attach ``describe(**thresholds) -> str`` to a check function."""
+    def decorator(func):
+        func.describe = describe
+        return func
+    return decorator
 
 
 def _finished(frame: pd.DataFrame, solver: str | None) -> pd.DataFrame:
@@ -52,6 +68,7 @@ def _fmt(value: float) -> str:
     return f"{value:.3g}"
 
 
+@criterion(lambda factor: f"geometric mean of random/smart mean CD over shapes and settings >= {factor:g}")
 def smart_beats_random(frame: pd.DataFrame, solver: str, factor: float) -> Verdict:
     """Mean CD from the random start over mean CD from the smart start, per shape
     and setting; holds when their geometric mean is at least ``factor``."""
@@ -68,17 +85,32 @@ def smart_beats_random(frame: pd.DataFrame, solver: str, factor: float) -> Verdi
     return Verdict(HOLDS if gmean >= factor else FAILS, numbers, len(rows))
 
 
-def good_where(frame: pd.DataFrame, solver: str, column: str, keep: Callable[[pd.Series], pd.Series],
-               min_levels: int = 1, threshold: float = ACCEPTABLE_CD) -> Verdict:
-    """The median CD of every (``column`` value, setting) group that ``keep``
-    selects is below ``threshold``; needs ``min_levels`` values of ``column``."""
+def _selection(column: str, at_least: float | None, among: tuple | None) -> str:
+    if among is not None:
+        return f"{column} in {{{', '.join(f'{v:g}' for v in among)}}}"
+    return f"every {column} >= {at_least:g}" if at_least is not None else f"every value of {column}"
+
+
+@criterion(lambda column, at_least, among, min_levels, threshold:
+           f"median CD <= {threshold:g} for {_selection(column, at_least, among)}, both settings"
+           + (f" (needs >= {min_levels} values of {column})" if min_levels > 1 else ""))
+def good_where(frame: pd.DataFrame, solver: str, column: str, at_least: float | None = None,
+               among: tuple | None = None, min_levels: int = 1,
+               threshold: float = ACCEPTABLE_CD) -> Verdict:
+    """The median CD of every (``column`` value, setting) group with the value
+    ``>= at_least`` (or ``among`` the listed ones) is below ``threshold``;
+    needs ``min_levels`` values of ``column``."""
     rows = _finished(frame, solver)
     if rows.empty:
         return Verdict(NOT_ENOUGH, "no finished runs", 0)
-    rows = rows[keep(rows[column])]
+    if at_least is not None:
+        rows = rows[rows[column] >= at_least]
+    if among is not None:
+        rows = rows[rows[column].isin(among)]
     levels = sorted(rows[column].unique())
-    if len(levels) < min_levels:
-        return Verdict(NOT_ENOUGH, f"needs {min_levels} values of {column}, has {len(levels)}", len(rows))
+    if len(levels) < min_levels or not levels:
+        return Verdict(NOT_ENOUGH, f"needs {max(min_levels, 1)} values of {column}, has {len(levels)}",
+                       len(rows))
     medians = rows.groupby([column, "projections"])[CD].median()
     worst = medians.idxmax()
     numbers = (f"median CD per {column} and setting: worst {_fmt(medians.max())} at {column}="
@@ -86,6 +118,8 @@ def good_where(frame: pd.DataFrame, solver: str, column: str, keep: Callable[[pd
     return Verdict(HOLDS if medians.max() <= threshold else FAILS, numbers, len(rows))
 
 
+@criterion(lambda factor, min_fraction: f"for every p, the baseline's median CD rise from q=0 to the "
+           f"largest q (>= {min_fraction:g}) is >= {factor:g}× the method's")
 def degrades_less(frame: pd.DataFrame, solver: str, factor: float, min_fraction: float = 0.5) -> Verdict:
     """Per noise amplitude p: the baseline's CD rise from q = 0 to the largest q
     is at least ``factor`` times the solver's."""
@@ -113,6 +147,8 @@ def degrades_less(frame: pd.DataFrame, solver: str, factor: float, min_fraction:
     return Verdict(HOLDS if ok else FAILS, f"q 0→{q_max:g}: " + "; ".join(parts), len(counted))
 
 
+@criterion(lambda setting, min_r2, min_levels: f"median runtime against K ({setting}): line with "
+           f"positive slope and R² >= {min_r2:g}, >= {min_levels} values of K")
 def linear_runtime(frame: pd.DataFrame, solver: str, setting: str = "variable",
                    min_r2: float = 0.9, min_levels: int = 4) -> Verdict:
     """Median runtime against K is fitted by a line with positive slope and R² >= ``min_r2``."""
@@ -130,6 +166,8 @@ def linear_runtime(frame: pd.DataFrame, solver: str, setting: str = "variable",
     return Verdict(HOLDS if slope > 0 and r2 >= min_r2 else FAILS, numbers, len(rows))
 
 
+@criterion(lambda setting, max_ratio, min_levels: f"largest median runtime over K ({setting}) <= "
+           f"{max_ratio:g}× the smallest, >= {min_levels} values of K")
 def flat_runtime(frame: pd.DataFrame, solver: str, setting: str = "fixed", max_ratio: float = 2.0,
                  min_levels: int = 3) -> Verdict:
     """The largest median runtime over K is at most ``max_ratio`` times the smallest."""
@@ -144,6 +182,8 @@ def flat_runtime(frame: pd.DataFrame, solver: str, setting: str = "fixed", max_r
     return Verdict(HOLDS if ratio <= max_ratio else FAILS, numbers, len(rows))
 
 
+@criterion(lambda m, min_share: f"in every shape >= {100 * min_share:g}% of the sampled points are "
+           f"visible in >= {m} of the views")
 def most_in_three_views(frame: pd.DataFrame, solver: str | None, m: int = 3,
                         min_share: float = 0.5) -> Verdict:
     """In every shape, at least ``min_share`` of the sampled points are visible in >= m views."""
@@ -157,6 +197,8 @@ def most_in_three_views(frame: pd.DataFrame, solver: str | None, m: int = 3,
                    f"share of points in >= {m} views: {numbers}", len(rows))
 
 
+@criterion(lambda than, min_speedup: f"per N and setting: {than}'s median runtime >= {min_speedup:g}× "
+           f"the method's, and the method's median CD <= {than}'s")
 def faster_and_as_exact(frame: pd.DataFrame, solver: str, than: str = "sgd",
                         min_speedup: float = 5.0) -> Verdict:
     """Per N and setting: ``solver`` is ``min_speedup``× faster (median runtime)
@@ -177,48 +219,36 @@ def faster_and_as_exact(frame: pd.DataFrame, solver: str, than: str = "sgd",
 CLAIMS: tuple[Claim, ...] = (
     Claim("smart-init", "Smart initialization outperforms random initialization by an order of "
           "magnitude (CD).", "Sec. 'The Effect of Smart Initialization', Fig. smart_init_experiment",
-          "paper-smart-init", "geometric mean of random/smart mean CD over shapes and settings >= 5",
-          partial(smart_beats_random, factor=5.0), solvers=("sgd",)),
+          "paper-smart-init", partial(smart_beats_random, factor=5.0), solvers=("sgd",)),
     Claim("three-views", "3DMPE reconstructs the point cloud properly if each point is visible from "
           "at least 3 projections.", "Sec. 'Scalability', Fig. visible_metrics", "paper-visibility",
-          "median CD <= 0.2 for every k >= 3 and both settings",
-          partial(good_where, column="visibility.k", keep=lambda k: k >= 3)),
+          partial(good_where, column="visibility.k", at_least=3)),
     Claim("angle-90", "For θr >= 90°, 3DMPE can reconstruct the whole object.",
           "Sec. 'Analysis of Angle Constraints', Fig. angle_noise", "paper-angle-band",
-          "median CD <= 0.2 for every θr >= 90° and both settings",
-          partial(good_where, column="angle_range", keep=lambda a: a >= 90)),
+          partial(good_where, column="angle_range", at_least=90)),
     Claim("four-five-views", "Typically 4 or 5 projections suffice for high-quality reconstruction.",
           "Sec. 'Scalability', Fig. viewpoints_metrics", "paper-views",
-          "median CD <= 0.2 at K = 4 and K = 5 (each point in K-1 views), both settings",
-          partial(good_where, column="views", keep=lambda k: k.isin([4, 5]))),
+          partial(good_where, column="views", among=(4, 5))),
     Claim("points-independent", "No significant effect of the number of points on accuracy.",
           "Sec. 'Scalability', Fig. points_metrics", "paper-points",
-          "median CD <= 0.2 at every N (>= 3 values of N), both settings",
-          partial(good_where, column="points", keep=lambda n: n > 0, min_levels=3)),
+          partial(good_where, column="points", min_levels=3)),
     Claim("distance-noise", "Under distance noise the baseline's accuracy drops much more than "
           "3DMPE's.", "Sec. 'Robustness', Fig. gaussian_noise", "paper-noise-distance",
-          "for every p, the baseline's median CD rise from q=0 to the largest q (>= 0.5) is >= 2× "
-          "the method's", partial(degrades_less, factor=2.0)),
+          partial(degrades_less, factor=2.0)),
     Claim("correspondence-noise", "3DMPE is robust to erroneous correspondences; the baseline "
           "degrades more.", "Sec. 'Robustness', Fig. perm_noise", "paper-noise-correspondence",
-          "for every p, the baseline's median CD rise from q=0 to the largest q (>= 0.5) is >= 2× "
-          "the method's", partial(degrades_less, factor=2.0)),
+          partial(degrades_less, factor=2.0)),
     Claim("runtime-linear-k", "With variable projections, runtime increases linearly in the number "
           "of viewpoints.", "Sec. 'Scalability', Fig. viewpoints_var_Run_Time", "paper-views",
-          "median runtime against K (variable): line with positive slope and R² >= 0.9, >= 4 values of K",
           partial(linear_runtime, setting="variable")),
     Claim("runtime-flat-k", "With fixed projections, the effect of more projections on runtime is "
           "negligible.", "Sec. 'Scalability', Fig. viewpoints_fixed_Run_Time", "paper-views",
-          "largest median runtime over K (fixed) <= 2× the smallest",
           partial(flat_runtime, setting="fixed")),
     Claim("raytrace-three-views", "With only 5 projections, most points are present in at least 3 "
           "viewpoints.", "Sec. 'Scalability', Fig. raytrace_visible", "paper-raytrace-counts",
-          "in every shape >= 50% of the sampled points are visible in >= 3 of the 5 views",
-          most_in_three_views, solvers=("any",)),
+          partial(most_in_three_views), solvers=("any",)),
     Claim("ours-faster", "(ours) refine reaches at least 3DMPE's accuracy, at least 5× faster.",
-          "mpe3d, not the paper", "paper-points",
-          "per N and setting: sgd/refine median runtime >= 5× and refine's median CD <= sgd's",
-          faster_and_as_exact, solvers=("refine",)),
+          "mpe3d, not the paper", "paper-points", partial(faster_and_as_exact), solvers=("refine",)),
 )
 
 VERDICT_COLUMNS = {"sgd": "3DMPE (paper)", "refine": "ours (refine)"}
@@ -237,19 +267,39 @@ def check(claim: Claim, frame: pd.DataFrame) -> dict[str, Verdict]:
     return out
 
 
-def claims_table(frames: dict[str, pd.DataFrame], claims=CLAIMS) -> pd.DataFrame:
+def runs_per_group(frame: pd.DataFrame, varying) -> int:
+    """How many runs (shapes × repeats) stand behind each setting a claim
+    compares: the median count over the groups of every other varying key."""
+    keys = [k for k in varying if k in frame and k not in ("shape", "seed")]
+    if frame.empty:
+        return 0
+    if not keys:
+        return len(frame)
+    return int(frame.groupby(keys, dropna=False).size().median())
+
+
+def claims_table(frames: dict[str, pd.DataFrame], claims=CLAIMS,
+                 full_sizes: dict[str, int] | None = None) -> pd.DataFrame:
     """One row per claim: the claim, where, the test, and each verdict with its numbers.
 
     ``frames`` maps experiment names to their runs; a missing experiment
-    counts as no runs.
+    counts as no runs. ``full_sizes`` gives, per experiment, the runs per
+    group at the full scale: a verdict from fewer is marked provisional.
     """
+    from .load import varying_columns
+
     rows = []
     for claim in claims:
         frame = frames.get(claim.experiment, pd.DataFrame())
         row = {"claim": claim.statement, "paper": claim.source, "experiment": claim.experiment,
                "test": claim.test}
+        full = (full_sizes or {}).get(claim.experiment)
+        done = frame[frame["status"] == "FINISHED"] if "status" in frame else frame
+        have = runs_per_group(done, varying_columns(done)) if full and len(done) else None
         for column, verdict in check(claim, frame).items():
             row[column] = verdict.verdict
+            if have is not None and have < full and verdict.verdict in (HOLDS, FAILS):
+                row[column] += f", provisional ({have} runs per group; the full scale has {full})"
             row[f"{column}: numbers"] = verdict.numbers
             row[f"{column}: runs"] = verdict.runs
         rows.append(row)

@@ -8,6 +8,7 @@ made it.
 from __future__ import annotations
 
 import html
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,7 +16,8 @@ import pandas as pd
 
 
 def _markdown(frame: pd.DataFrame) -> str:
-    return frame.to_markdown(index=False, floatfmt=".3g", missingval="–")
+    blank = frame.astype(object).where(frame.notna(), None)  # NaN too shows as "–"
+    return blank.to_markdown(index=False, floatfmt=".3g", missingval="–")
 
 
 def _latex(frame: pd.DataFrame, caption: str, label: str) -> str:
@@ -36,6 +38,8 @@ class Report:
     blocks: list[tuple[str, object]] = field(default_factory=list)
     files: list[Path] = field(default_factory=list)
     note: str = ""  # appended to every caption while set (e.g. "mixes runs of two code versions")
+    empty: list[str] = field(default_factory=list)  # tables that had no rows
+    pdf: bool = True  # each figure also as PDF (for papers; a quick look needs only the PNG)
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -49,8 +53,16 @@ class Report:
         self.blocks.append(("text", text))
 
     def table(self, frame: pd.DataFrame, name: str, caption: str, show: bool = True) -> None:
-        """``tables/NAME.md`` and ``tables/NAME.tex``, and the table in the index."""
+        """``tables/NAME.md`` and ``tables/NAME.tex``, and the table in the index.
+
+        A table without rows is never written: the index says so instead, and
+        ``empty`` lists it, so that the caller can fail.
+        """
         caption = f"{caption} {self.note}".strip()
+        if frame.empty:
+            self.empty.append(name)
+            self.text(f"Table {name}: no rows (no finished runs fit it).")
+            return
         md = self.out / "tables" / f"{name}.md"
         tex = self.out / "tables" / f"{name}.tex"
         md.write_text(f"{caption}\n\n{_markdown(frame)}\n")
@@ -65,15 +77,24 @@ class Report:
         png = self.out / "figures" / f"{name}.png"
         pdf = self.out / "figures" / f"{name}.pdf"
         fig.savefig(png, dpi=120, bbox_inches="tight")
-        fig.savefig(pdf, bbox_inches="tight")
+        if self.pdf:
+            fig.savefig(pdf, bbox_inches="tight")
         plt.close(fig)
-        self.files += [png, pdf]
+        self.files += [png, pdf] if self.pdf else [png]
         self.blocks.append(("figure", (name, caption)))
+
+    def viewer(self, clouds: dict, name: str, caption: str) -> None:
+        """A cloud to turn with the mouse, in ``index.html`` (``viewer.js`` draws it)."""
+        self.blocks.append(("viewer", (clouds, name, caption)))
 
     def write_index(self) -> tuple[Path, Path]:
         md, page = self.out / "index.md", self.out / "index.html"
         md.write_text(self._markdown())
         page.write_text(self._html())
+        if any(kind == "viewer" for kind, _ in self.blocks):
+            from .viewer import write_script
+
+            self.files.append(write_script(self.out))
         return md, page
 
     def _markdown(self) -> str:
@@ -88,10 +109,13 @@ class Report:
                 frame, name, caption, show = value
                 links = f"[md](tables/{name}.md) · [tex](tables/{name}.tex)"
                 parts.append(f"**{caption}** ({links})" + (f"\n\n{_markdown(frame)}" if show else ""))
+            elif kind == "viewer":
+                parts.append(f"*{value[2].split(' Drag')[0]}* (turn it with the mouse in index.html)")
             else:
                 name, caption = value
+                pdf = f" · [pdf](figures/{name}.pdf)" if self.pdf else ""
                 parts.append(f"![{caption}](figures/{name}.png)\n\n*{caption}* "
-                             f"([png](figures/{name}.png) · [pdf](figures/{name}.pdf))")
+                             f"([png](figures/{name}.png){pdf})")
         return "\n\n".join(parts) + "\n"
 
     def _html(self) -> str:
@@ -109,17 +133,28 @@ class Report:
                                       border=0) if show else ""
                 body.append(f"<figure class='table'><figcaption>{html.escape(caption)} ({links})"
                             f"</figcaption>{table}</figure>")
+            elif kind == "viewer":
+                clouds, name, caption = value
+                ident = "cloud-" + "".join(c if c.isalnum() else "-" for c in name)
+                payload = json.dumps(clouds, separators=(",", ":")).replace("</", "<\\/")
+                body.append(f"<figure class='viewer'><canvas class='mpe3d-cloud' data-cloud='{ident}' "
+                            f"width='420' height='340'></canvas><figcaption>{html.escape(caption)}"
+                            f"</figcaption><script type='application/json' id='{ident}'>{payload}"
+                            "</script></figure>")
             else:
                 name, caption = value
+                pdf = f" (<a href='figures/{name}.pdf'>pdf</a>)" if self.pdf else ""
                 body.append(f"<figure><img src='figures/{name}.png' alt='{html.escape(name)}'>"
-                            f"<figcaption>{html.escape(caption)} (<a href='figures/{name}.pdf'>pdf"
-                            f"</a>)</figcaption></figure>")
+                            f"<figcaption>{html.escape(caption)}{pdf}</figcaption></figure>")
+        script = "<script src='viewer.js'></script>" if any(k == "viewer" for k, _ in self.blocks) else ""
         return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
                 f"<title>{html.escape(self.title)}</title><style>{_CSS}</style></head>"
-                f"<body>{''.join(body)}</body></html>\n")
+                f"<body>{''.join(body)}{script}</body></html>\n")
 
 
 _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;line-height:1.4}"
         "table{border-collapse:collapse;font-size:0.85em;margin:0.5em 0}"
         "th,td{padding:2px 8px;border-bottom:1px solid #ddd;text-align:left;vertical-align:top}"
-        "img{max-width:100%}figure{margin:1em 0}figcaption{font-size:0.9em;color:#333}")
+        "img{max-width:100%}figure{margin:1em 0}figcaption{font-size:0.9em;color:#333}"
+        "figure.viewer{display:inline-block;width:430px;vertical-align:top;margin:0.5em 1em 0.5em 0}"
+        "canvas.mpe3d-cloud{border:1px solid #ddd;cursor:grab;touch-action:none}")

@@ -65,3 +65,16 @@ def published(table: str) -> pd.DataFrame:
     with path.open() as handle:
         data = pd.read_csv(handle)
     return data[data["table"] == table].reset_index(drop=True)
+
+
+def varying_columns(frame: pd.DataFrame) -> tuple[str, ...]:
+    """The config keys whose values differ between the runs of ``frame``; a
+    solver option counts only if it differs between runs of one solver."""
+    keys = [k for k in frame.columns if k in KEYS or k.startswith("solver.")]
+
+    def varies(key: str) -> bool:
+        if key.startswith("solver.") and key != "solver.name":
+            return bool((frame.groupby("solver.name")[key].nunique() > 1).any())
+        return frame[key].nunique() > 1
+
+    return tuple(k for k in keys if varies(k))

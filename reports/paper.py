@@ -19,7 +19,8 @@ from mpe3d.harness.identity import code_identity
 from . import figures, tables
 from .claims import claims_table
 from .document import Report
-from .load import CD, EMD, ROA, finished, published
+from .viewer import add_viewers
+from .load import CD, EMD, METRIC_LABELS, ROA, finished, published, varying_columns
 
 METRICS = [CD, EMD, ROA]
 
@@ -126,14 +127,60 @@ RECIPE = (
 BY_NAME = {e.name: e for e in RECIPE}
 
 
+GENERIC_METRICS = [*METRICS, "runtime_s"]
+
+
 def _generic(frame: pd.DataFrame, report: Report, varying: list[str]) -> None:
-    by = [k for k in varying if k in frame and k != "seed"] or ["method"]
-    report.table(tables.summary(frame, by, [*METRICS, "runtime_s"]), _slug(report, "summary"),
-                 "Mean and standard deviation over repeats of every varying setting.")
+    """Any sweep: a table row per (varying keys, solver), and a figure per
+    metric against each varying key, a line per solver (and per setting of the
+    other categorical keys; shapes and seeds are averaged as repeats)."""
+    keys = [k for k in (varying or varying_columns(frame)) if k in frame and k not in ("seed", "solver.name")]
+    report.table(tables.summary(frame, [*keys, "method"], GENERIC_METRICS), _slug(report, "summary"),
+                 "One row per setting and solver: mean and standard deviation over repeats; "
+                 "'–' marks an option the row's solver does not have.")
+    for x in _independent([k for k in keys if not k.startswith("solver.")], frame):
+        others = [k for k in keys if k not in (x, "shape") and not _numeric(frame, k)]
+        lines = _series(frame, others)
+        for metric in GENERIC_METRICS:
+            numeric = _numeric(frame, x)
+            values = frame[x].dropna()
+            logx = numeric and values.min() > 0 and values.max() / values.min() >= 10
+            fig = figures.line_figure(lines, x, [metric], panels=None, series="series", logx=logx)
+            label = METRIC_LABELS.get(metric, metric)
+            report.figure(fig, _slug(report, f"{metric}_vs_{x}", "figures", ".png"),
+                          f"{label} against {x}, one line per solver"
+                          + (f" and {', '.join(others)}" if others else "")
+                          + "; mean over shapes and repeats, bars: standard deviation.")
 
 
-def _slug(report: Report, stem: str) -> str:
-    existing = {p.stem for p in (report.out / "tables").glob("*.md")}
+def _numeric(frame: pd.DataFrame, key: str) -> bool:
+    return pd.api.types.is_numeric_dtype(frame[key])
+
+
+def _independent(keys: list[str], frame: pd.DataFrame) -> list[str]:
+    """Drop a key that moves in lockstep with an earlier one (a zip axis): one figure says it."""
+    kept: list[str] = []
+    for key in keys:
+        if frame[key].nunique() < 2:
+            continue
+        if not any(frame.groupby(k, dropna=False)[key].nunique().max() <= 1
+                   and frame.groupby(key, dropna=False)[k].nunique().max() <= 1 for k in kept):
+            kept.append(key)
+    return kept
+
+
+def _series(frame: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
+    """``frame`` with a ``series`` label: the solver, then the other keys' values."""
+    def label(row) -> str:
+        parts = [f"{k.split('.')[-1]}={row[k]}" for k in keys if pd.notna(row[k])]
+        return ", ".join([row["method"], *parts])
+
+    return frame.assign(series=frame.apply(label, axis=1) if len(frame) else [])
+
+
+def _slug(report: Report, stem: str, folder: str = "tables", suffix: str = ".md") -> str:
+    stem = "".join(c if c.isalnum() or c in "_-" else "_" for c in stem)
+    existing = {p.stem for p in (report.out / folder).glob(f"*{suffix}")}
     name, i = stem, 2
     while name in existing:
         name, i = f"{stem}_{i}", i + 1
@@ -151,6 +198,8 @@ class Section:
     planned: int | None = None  # configs in the sweep; None when reporting a whole experiment
     varying: tuple[str, ...] = ()
     code: str = field(default_factory=code_identity)  # the running code, to tell its runs apart
+    client: object | None = None  # an MlflowClient to fetch a few runs' clouds for turnable views
+    full_runs_per_group: int | None = None  # at the full scale, to mark smaller verdicts provisional
 
 
 def _counts(section: Section) -> str:
@@ -200,17 +249,22 @@ def render_section(report: Report, section: Section) -> None:
     else:
         _generic(rows, report, list(section.varying))
     report.note = ""
+    if not rows.empty and section.client is not None:
+        add_viewers(report, rows, section.client, section.name)
 
 
-def write(out: Path, sections: list[Section], title: str, facts: list[str] | None = None) -> Report:
-    """Render ``sections`` and the claims they can test into ``out``."""
+def write(out: Path, sections: list[Section], title: str, facts: list[str] | None = None,
+          claims: bool = True, pdf: bool = True) -> Report:
+    """Render ``sections`` and (with ``claims``) the claims they can test into
+    ``out``; ``pdf`` adds a PDF of every figure."""
     start = time.perf_counter()
-    report = Report(Path(out), title)
+    report = Report(Path(out), title, pdf=pdf)
     for line in facts or []:
         report.text(line)
     frames = {s.name: s.frame for s in sections}
-    claims = claims_table(frames)
-    checked = claims[claims["experiment"].isin(frames)]
+    full = {s.name: s.full_runs_per_group for s in sections if s.full_runs_per_group}
+    table = claims_table(frames, full_sizes=full) if claims else pd.DataFrame(columns=["experiment"])
+    checked = table[table["experiment"].isin(frames)]
     if len(checked):
         report.heading("Claims")
         report.text("Each claim of the paper, tested on the runs below; 'n/a' where a claim "

@@ -13,7 +13,9 @@ PUBLISHED_ORDER = ["PSGN", "3D-LMNet", "Baseline[3D-LMNet paper]", "Our BL", "3D
 
 def summary(frame: pd.DataFrame, by: list[str], metrics: list[str]) -> pd.DataFrame:
     """Mean and standard deviation of ``metrics`` per group of ``by``, and the run count."""
-    grouped = frame.groupby(by, sort=True)
+    # dropna=False: a solver leaves the other solvers' options empty, and its
+    # rows must not vanish with them.
+    grouped = frame.groupby(by, sort=True, dropna=False)
     out = grouped[metrics].agg(["mean", "std"])
     out.columns = [f"{METRIC_LABELS.get(m, m).split(' (')[0]} {stat}" for m, stat in out.columns]
     out.insert(0, "runs", grouped.size())
@@ -44,14 +46,23 @@ def allmetrics(frame: pd.DataFrame, published: pd.DataFrame,
     long["metric"] = long["metric"].map({CD: "CD", EMD: "EMD"})
     ours = long.pivot_table(index=["category", "metric"], columns="column", values="value",
                             aggfunc="mean")
-    ours.loc[("mean", "CD"), :] = ours.xs("CD", level="metric").mean()
-    ours.loc[("mean", "EMD"), :] = ours.xs("EMD", level="metric").mean()
+    covered = sorted(ours.index.get_level_values(0).unique())
+    # Both means over the same categories: the published "mean" row averages all
+    # of the paper's, so over fewer it is recomputed from the published rows.
+    listed = set(published["category"]) - {"mean"}
+    mean = "mean" if set(covered) == listed else f"mean of {len(covered)}: {', '.join(covered)}"
+    for metric in ("CD", "EMD"):
+        ours.loc[(mean, metric), :] = ours.xs(metric, level="metric").mean()
+    same = published[published["category"].isin(covered)]
+    same = same.groupby(["metric", "method"], as_index=False)["value"].mean().assign(category=mean) \
+        if mean != "mean" else published[published["category"] == "mean"]
+    published = pd.concat([published[published["category"] != "mean"], same], ignore_index=True)
     paper = published.pivot_table(index=["category", "metric"], columns="method", values="value")
     paper = paper[[m for m in PUBLISHED_ORDER if m in paper] + [m for m in paper if m not in PUBLISHED_ORDER]]
     paper.columns = [f"{m} ({published_note})" for m in paper.columns]
     table = ours.join(paper, how="left")
     order = list(paper.columns) + sorted(ours.columns, key=_column_order)
-    categories = [c for c in ours.index.get_level_values(0).unique() if c != "mean"] + ["mean"]
+    categories = [c for c in ours.index.get_level_values(0).unique() if c != mean] + [mean]
     table = table.reindex(pd.MultiIndex.from_product([categories, ["CD", "EMD"]]))[order]
     return table.reset_index(names=["category", "metric"])
 

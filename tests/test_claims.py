@@ -45,15 +45,15 @@ def level_runs(column, levels, cd, solver="sgd"):
 
 def test_good_where_selects_levels_and_names_the_worst():
     frame = level_runs("visibility.k", range(1, 8), lambda k: 5.0 if k < 3 else 0.01 * k)
-    check = dict(column="visibility.k", keep=lambda k: k >= 3)
+    check = dict(column="visibility.k", at_least=3)
     assert good_where(frame, "sgd", **check).verdict == HOLDS  # k = 1, 2 are bad but not claimed
     worse = level_runs("visibility.k", range(1, 8), lambda k: 0.5 if k == 4 else 0.01)
     verdict = good_where(worse, "sgd", **check)
     assert verdict.verdict == FAILS and "worst 0.5 at visibility.k=4" in verdict.numbers
     assert good_where(level_runs("visibility.k", [1, 2], lambda k: 0.01), "sgd", **check).verdict == NOT_ENOUGH
     points = level_runs("points", [128, 256], lambda n: 0.01)
-    assert good_where(points, "sgd", column="points", keep=lambda n: n > 0,
-                      min_levels=3).verdict == NOT_ENOUGH
+    assert good_where(points, "sgd", column="points", min_levels=3).verdict == NOT_ENOUGH
+    assert good_where(frame, "sgd", column="visibility.k", among=(4, 5)).verdict == HOLDS
     assert good_where(frame, "refine", **check).verdict == NOT_ENOUGH  # no refine runs
 
 
@@ -115,3 +115,24 @@ def test_every_claim_says_not_enough_on_an_empty_table(claim):
     for solver in claim.solvers:
         assert claim.check(pd.DataFrame(), None if solver == "any" else solver).verdict == NOT_ENOUGH
     assert np.all([claim.statement, claim.source, claim.test, claim.experiment])
+
+
+def test_claim_tests_are_written_from_their_thresholds():
+    from functools import partial
+
+    from mpe3d.reports.claims import Claim
+
+    claim = Claim("x", "s", "src", "paper-views", partial(good_where, column="views", among=(4, 5),
+                                                           threshold=0.3))
+    assert claim.test == "median CD <= 0.3 for views in {4, 5}, both settings"
+    stricter = Claim("y", "s", "src", "paper-noise-distance", partial(degrades_less, factor=3.5))
+    assert "is >= 3.5× the method's" in stricter.test
+
+
+def test_verdicts_from_fewer_runs_than_the_full_scale_are_provisional():
+    frame = init_runs(3.0, 0.1, repeats=2)  # 2 shapes × 2 repeats per (setting, init)
+    table = claims_table({"paper-smart-init": frame}, full_sizes={"paper-smart-init": 16})
+    smart = table[table["experiment"] == "paper-smart-init"].iloc[0]
+    assert smart["3DMPE (paper)"] == f"{HOLDS}, provisional (4 runs per group; the full scale has 16)"
+    same = claims_table({"paper-smart-init": frame}, full_sizes={"paper-smart-init": 4})
+    assert same[same["experiment"] == "paper-smart-init"].iloc[0]["3DMPE (paper)"] == HOLDS

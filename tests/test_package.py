@@ -50,7 +50,7 @@ def test_the_wheel_installs_mpe3d_and_nothing_else(tmp_path):
     top = {name.split("/")[0] for name in names}
     assert top == {"mpe3d", next(t for t in top if t.endswith(".dist-info"))}, top
     for data in ("mpe3d/harness/assets/meshes/chair.ply", "mpe3d/sweeps/paper/views.yaml",
-                 "mpe3d/reports/data/paper_tables.csv", "mpe3d/harness/assets/js/viewer.js"):
+                 "mpe3d/reports/data/paper_tables.csv", "mpe3d/reports/assets/viewer.js"):
         assert data in names, data
     assert not any(name.startswith("mpe3d/tests") for name in names)
 

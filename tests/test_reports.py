@@ -171,4 +171,4 @@ def test_a_report_says_which_code_made_its_numbers(tmp_path):
     assert "computed by 2 different versions of the code (0.0.9/bbbb: 2 run(s), " \
            "0.1.0/aaaa (this code): 1 run(s))" in text
     table = (mixed.out / "tables" / "summary.md").read_text()
-    assert table.startswith("Mean and standard deviation") and "Mixes runs of 2 code versions" in table
+    assert table.startswith("One row per setting and solver") and "Mixes runs of 2 code versions" in table
