@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .base import Choice, Interval, Observations, Reconstruction, register
+from .base import Interval, Observations, Reconstruction, register
 from .degenerate import check_geometry, warn
 from .stress import Stress, project_rows
 
