@@ -20,12 +20,9 @@ import tempfile
 import time
 from pathlib import Path
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
-    sys.path.pop(0)  # this folder would shadow the ``solvers`` package
 
 from mpe3d.harness.runner import plan_sweeps, run_plans
-from mpe3d.harness.sweep import load_sweep
-from mpe3d.harness.tracking import Tracker
+from mpe3d import Tracker, load_sweep
 
 TARGET_S = 0.15
 SWEEP = """

@@ -14,17 +14,13 @@ from __future__ import annotations
 import argparse
 import json
 import resource
-import sys
 import time
-from pathlib import Path
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
-    sys.path.pop(0)  # this folder would shadow the ``solvers`` package
 
-from mpe3d.harness.config import make_config  # noqa: E402
-from mpe3d.harness.metrics import roa  # noqa: E402
-from mpe3d.harness.observe import build_scene, observe, seed_streams  # noqa: E402
-from mpe3d.harness.reconstruct import reconstruct  # noqa: E402
+from mpe3d import make_config
+from mpe3d.harness.metrics import roa
+from mpe3d.harness.observe import build_scene, observe, seed_streams
+from mpe3d import reconstruct
 
 
 def case(points: int, views: int, setting: str, shape: str) -> dict:

@@ -24,17 +24,13 @@ import time
 import tracemalloc
 import warnings
 from collections import defaultdict
-from pathlib import Path
 
 import numpy as np
 
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
-    sys.path.pop(0)  # this folder would shadow the ``solvers`` package
 
-from mpe3d import solvers  # noqa: E402
-from mpe3d.harness.config import make_config  # noqa: E402
-from mpe3d.harness.metrics import evaluate  # noqa: E402
-from mpe3d.harness.observe import build_scene, observe, seed_streams  # noqa: E402
+from mpe3d import make_config, solvers
+from mpe3d.harness.metrics import evaluate
+from mpe3d.harness.observe import build_scene, observe, seed_streams
 
 NOISE = ["none", "distance:0.2:0.05", "distance:0.2:0.1", "distance:0.4:0.05", "distance:0.4:0.1",
          "correspondence:0.2:0.05", "correspondence:0.2:0.1", "correspondence:0.4:0.05",

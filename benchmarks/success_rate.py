@@ -15,15 +15,11 @@ import argparse
 import json
 import statistics
 import sys
-from pathlib import Path
 
-# Run as a script, this folder comes first on sys.path; keep it from shadowing packages.
-if sys.path and Path(sys.path[0]).resolve() == Path(__file__).resolve().parent:
-    sys.path.pop(0)
 
-from mpe3d.harness.config import make_config  # noqa: E402
-from mpe3d.harness.execute import run  # noqa: E402
-from mpe3d.harness.shapes import shape_names  # noqa: E402
+from mpe3d import make_config
+from mpe3d import run
+from mpe3d.harness.shapes import shape_names
 
 
 def main(argv=None) -> int:

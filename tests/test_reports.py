@@ -116,6 +116,8 @@ def _chromium():
 def test_index_html_loads_with_all_images_in_a_real_browser(tiny_report):
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
 
     folder, _, _, _ = tiny_report
     options = webdriver.ChromeOptions()
@@ -130,8 +132,22 @@ def test_index_html_loads_with_all_images_in_a_real_browser(tiny_report):
         images = driver.execute_script(
             "return Array.from(document.images).map(i => [i.getAttribute('src'), i.complete, i.naturalWidth])")
         title = driver.title
+        # The turnable clouds: every canvas drawn, and a drag with the mouse turns one.
+        canvases = driver.find_elements(By.CSS_SELECTOR, "canvas.mpe3d-cloud")
+        drawn = [c.get_attribute("data-rendered") for c in canvases]
+        driver.execute_script("arguments[0].scrollIntoView()", canvases[0])
+        before = driver.execute_script("return arguments[0].toDataURL()", canvases[0])
+        ActionChains(driver).move_to_element(canvases[0]).click_and_hold().move_by_offset(60, 25) \
+            .release().perform()
+        after = driver.execute_script("return arguments[0].toDataURL()", canvases[0])
+        blank = driver.execute_script(
+            "const c = document.createElement('canvas'); c.width = arguments[0].width;"
+            "c.height = arguments[0].height; const x = c.getContext('2d'); x.fillStyle = '#fff';"
+            "x.fillRect(0, 0, c.width, c.height); return c.toDataURL()", canvases[0])
     finally:
         driver.quit()
+    assert len(canvases) >= 10 and drawn == ["1"] * len(canvases)  # a few per experiment
+    assert before != after and before != blank
     assert title == "3DMPE, reproduced with mpe3d"
     assert sorted(src for src, _, _ in images) == sorted(f"figures/{n}.png" for n in FIGURES)
     broken = [src for src, complete, width in images if not complete or width == 0]
