@@ -121,7 +121,7 @@ def _check_parallel(args) -> str:
     return backend
 
 
-def run_sweeps(sweeps, args, tracker) -> tuple[list, int]:
+def run_sweeps(sweeps, args, tracker, summaries: bool = True) -> tuple[list, int]:
     """:func:`runner.run_sweeps` with the command line's flags, printing as it goes."""
     from .runner import run_sweeps as run
 
@@ -132,7 +132,7 @@ def run_sweeps(sweeps, args, tracker) -> tuple[list, int]:
     plans, code = run(sweeps, tracker, jobs=args.jobs, backend=_check_parallel(args),
                       scheduler=args.scheduler, artifacts=not args.no_artifacts,
                       rerun_failed=args.rerun_failed, force=args.force, reuse_stale=args.reuse_stale,
-                      reporter=reporter, say=lambda text: _say(text, args.quiet),
+                      reporter=reporter, say=lambda text: _say(text, args.quiet), summaries=summaries,
                       warn=lambda text: print(f"mpe3d: {text}", file=sys.stderr, flush=True))
     return plans, code
 
@@ -311,7 +311,7 @@ def cmd_reproduce(args) -> int:
     tracker = Tracker(args.tracking_uri)
     _say(f"reproduce-paper --scale {args.scale}: {len(sweeps)} experiments, "
          f"{sum(len(s.runs) for s in sweeps)} runs, tracked in {tracker.uri}", args.quiet)
-    plans, code = run_sweeps(sweeps, args, tracker)
+    plans, code = run_sweeps(sweeps, args, tracker, summaries=False)  # the report below serves
     if code == 130:
         return code
     ran = sum(sum(p.counts.values()) for p in plans)
@@ -329,6 +329,11 @@ def cmd_reproduce(args) -> int:
              "CC0 stand-ins for ShapeNet's categories (`mpe3d shapes`)."]
     report = _write_report(Path(args.out), sections, "3DMPE, reproduced with mpe3d", facts)
     _wrote(report)
+    if not args.no_artifacts:  # each parent run shows its experiment's part of the report
+        for plan in plans:
+            if plan.parent_id:
+                tracker.log_parent_artifacts(plan.parent_id, report.out,
+                                             report.by_section.get(plan.sweep.name, []))
     _say(f"reproduce-paper: {time.time() - start:.1f} s in all", args.quiet)
     return code
 

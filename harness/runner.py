@@ -460,15 +460,16 @@ def _quiet(text: str) -> None:
 def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "loky",
                scheduler: str | None = None, artifacts: bool = True, rerun_failed: bool = False,
                force: bool = False, reuse_stale: bool = False, reporter: Reporter | None = None,
-               say=_quiet, warn=_quiet) -> tuple[list[Plan], int]:
+               say=_quiet, warn=_quiet, summaries: bool = True) -> tuple[list[Plan], int]:
     """Replay the journal, plan ``sweeps`` against ``tracker``, run what is
     missing and summarise; ``say`` and ``warn`` receive the lines to show.
 
     Returns the plans and the exit code: 0, 1 when a run failed, 130 when
     interrupted (Ctrl-C or SIGTERM; every run logged so far is kept). A store
     failure raises :class:`StoreError` (exit 3) after the computed results are
-    journaled. With ``artifacts``, each parent run also gets its sweep's
-    summary table and figures.
+    journaled. With ``artifacts`` and ``summaries``, each parent run also gets
+    its sweep's summary table and figures (``reproduce-paper`` logs its own
+    report's sections instead, drawn once).
     """
     journal = Journal()
     replayed = replay_journal(tracker, journal)
@@ -491,7 +492,7 @@ def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "
     try:
         run_plans(plans, tracker, jobs=jobs, backend=backend, scheduler=scheduler,
                   artifacts=artifacts, reporter=reporter, journal=journal)
-        if artifacts:
+        if artifacts and summaries:
             for plan in plans:
                 if plan.parent_id:
                     _log_summary(tracker, plan, warn)

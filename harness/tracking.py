@@ -431,10 +431,15 @@ class Tracker:
             if any(folder.iterdir()):
                 self.client.log_artifacts(run_id, str(folder))
 
-    def log_parent_artifacts(self, run_id: str, folder) -> None:
-        """A sweep's summary report (``index.html``, tables, figures) on its parent run."""
+    def log_parent_artifacts(self, run_id: str, folder, files=None) -> None:
+        """A sweep's summary report on its parent run, under ``summary/``: the
+        whole ``folder``, or only ``files`` in it (kept in their subfolders)."""
         with _store_errors(self.uri, "log the summary report"):
-            self.client.log_artifacts(run_id, str(folder), "summary")
+            if files is None:
+                self.client.log_artifacts(run_id, str(folder), "summary")
+            for path in files or []:
+                relative = Path(path).relative_to(folder).parent
+                self.client.log_artifact(run_id, str(path), str(Path("summary") / relative))
 
     def runs_frame(self, experiment: str, history: bool = False):
         """The child runs of ``experiment`` as a DataFrame, with ``status``,

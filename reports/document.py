@@ -40,6 +40,8 @@ class Report:
     note: str = ""  # appended to every caption while set (e.g. "mixes runs of two code versions")
     empty: list[str] = field(default_factory=list)  # tables that had no rows
     pdf: bool = True  # each figure also as PDF (for papers; a quick look needs only the PNG)
+    current: str = ""  # the section (experiment) being rendered
+    by_section: dict[str, list[Path]] = field(default_factory=dict)  # its tables and figures
 
     def __post_init__(self):
         self.out = Path(self.out)
@@ -67,7 +69,7 @@ class Report:
         tex = self.out / "tables" / f"{name}.tex"
         md.write_text(f"{caption}\n\n{_markdown(frame)}\n")
         tex.write_text(_latex(frame, caption, name))
-        self.files += [md, tex]
+        self._wrote([md, tex])
         self.blocks.append(("table", (frame, name, caption, show)))
 
     def figure(self, fig, name: str, caption: str) -> None:
@@ -80,8 +82,12 @@ class Report:
         if self.pdf:
             fig.savefig(pdf, bbox_inches="tight")
         plt.close(fig)
-        self.files += [png, pdf] if self.pdf else [png]
+        self._wrote([png, pdf] if self.pdf else [png])
         self.blocks.append(("figure", (name, caption)))
+
+    def _wrote(self, paths: list[Path]) -> None:
+        self.files += paths
+        self.by_section.setdefault(self.current, []).extend(paths)
 
     def viewer(self, clouds: dict, name: str, caption: str) -> None:
         """A cloud to turn with the mouse, in ``index.html`` (``viewer.js`` draws it)."""

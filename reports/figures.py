@@ -84,6 +84,9 @@ def _plain_log_labels(ax) -> None:
         ax.yaxis.set_major_locator(matplotlib.ticker.LogLocator(numticks=8))
         ax.yaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
         ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+        low, high = ax.get_ylim()
+        if high / max(low, 1e-300) > 1e3:  # minor ticks over many decades: clutter, and slow
+            ax.yaxis.set_minor_locator(matplotlib.ticker.NullLocator())
 
 
 def _dodge(x: np.ndarray, index: int, count: int, log: bool, span: float) -> np.ndarray:

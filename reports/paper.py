@@ -228,6 +228,7 @@ def code_note(frame: pd.DataFrame, current: str) -> tuple[str, str]:
 
 
 def render_section(report: Report, section: Section) -> None:
+    report.current = section.name
     experiment = BY_NAME.get(section.name)
     report.heading(experiment.title if experiment else section.name)
     if section.description:

@@ -67,7 +67,7 @@ def test_yaml_exponent_without_dot_is_a_number():
     ({"visibility.mode": "exactly"}, "'exactly' is not one of all, exact, count, raytrace (did you mean 'exact'?)"),
     ({"solver": "sdg"}, "unknown solver 'sdg' (known: baseline, factorize, refine, sgd) (did you mean 'sgd'?)"),
     ({"solver.max_itr": 5}, "unknown option 'solver.max_itr' for solver 'sgd' (options: "),
-    ({"solver.max_iter": 2.5}, "solver.max_iter: expected int"),
+    ({"solver.max_iter": 2.5}, "solver.max_iter: expected an integer >= 0 for solver 'sgd', got 2.5"),
     ({"noise.fraction": 1.5}, "noise.fraction: must be in [0, 1]"),
 ])
 def test_bad_values_name_the_culprit(overrides, message):

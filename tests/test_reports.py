@@ -7,6 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from mpe3d.harness.cli import main
 from mpe3d.harness.tracking import Tracker
 from mpe3d.reports.load import published
 from mpe3d.sweeps import paper_sweeps
@@ -55,6 +56,14 @@ def test_report_folder_holds_every_table_and_figure(tiny_report):
     assert re.search(r"Scale tiny; \d+ runs in 10 experiments: \d+ run now, 0 reused", index)
     assert "wall time for the runs" in index
     assert "wrote report/index.html" in first.stdout
+    # Each parent run in MLflow carries its experiment's part of the report.
+    from mlflow.tracking import MlflowClient
+    client = MlflowClient(f"sqlite:///{folder}/mlflow.db")
+    experiment = client.get_experiment_by_name("paper-views")
+    (parent,) = [r for r in client.search_runs([experiment.experiment_id])
+                 if "mlflow.parentRunId" not in r.data.tags]
+    logged = {a.path for a in client.list_artifacts(parent.info.run_id, "summary/figures")}
+    assert {"summary/figures/views_metrics.png", "summary/figures/views_runtime.png"} <= logged
 
 
 def test_tables_hold_the_runs_numbers(tiny_report):
@@ -79,25 +88,25 @@ def test_rerun_reuses_every_run(tiny_report):
         sorted(p.name for p in (folder / "report" / "figures").iterdir())
 
 
-def test_report_commands_and_their_errors(tiny_report):
+def test_report_commands_and_their_errors(tiny_report, capsys):
     folder, uri, _, _ = tiny_report
     one = run_cli("report", "--experiment", "paper-angle-band", "--out", "one",
                   "--tracking-uri", uri, cwd=folder)
     assert one.returncode == 0, one.stderr
     assert (folder / "one" / "figures" / "angle_band.png").exists()
     sweep = [p for p in paper_sweeps() if p.name == "points.yaml"][0]
-    two = run_cli("report", "--sweep", str(sweep), "--scale", "tiny", "--out", "two",
-                  "--tracking-uri", uri, cwd=folder)
-    assert two.returncode == 0, two.stderr
+    assert main(["report", "--sweep", str(sweep), "--scale", "tiny", "--out", str(folder / "two"),
+                 "--tracking-uri", uri]) == 0
     assert (folder / "two" / "tables" / "points.md").exists()
+    capsys.readouterr()
     for args, message in [
         (["--experiment", "paper-angel-band"], "no experiment 'paper-angel-band'"),
         (["--sweep", "missing.yaml"], "cannot read sweep file missing.yaml"),
         (["--sweep", str(sweep), "--scale", "huge"], "has no scale 'huge'"),
     ]:
-        bad = run_cli("report", *args, "--out", "x", "--tracking-uri", uri, cwd=folder)
-        assert bad.returncode == 2 and message in bad.stderr, bad.stderr
-        assert "Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+        assert main(["report", *args, "--out", str(folder / "x"), "--tracking-uri", uri]) == 2
+        err = capsys.readouterr().err
+        assert message in err and "Traceback" not in err and len(err.strip().splitlines()) == 1, err
 
 
 @pytest.mark.skipif(not (SHARED / "reference").is_dir(), reason="../shared is not beside this checkout")
