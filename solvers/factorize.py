@@ -153,7 +153,7 @@ def _fit_points(L, t, view, point, z, N, rows):
     return np.einsum("nij,nj->ni", np.linalg.pinv(lhs), rhs)
 
 
-def _affine_start(obs, view, point, z):
+def _affine_start(view, point, z, N, K):
     """An affine reconstruction grown from the two views sharing most points.
 
     Two affine views fix the affine structure of the points they share (a
@@ -163,13 +163,13 @@ def _affine_start(obs, view, point, z):
     already the exact affine solution, so the alternating least squares that
     follow only polish; from a random start they can stall.
     """
-    N, K = obs.n_points, obs.n_views
-    alpha = obs.visibility()
+    alpha = np.zeros((K, N), dtype=bool)
+    alpha[view, point] = True
     shared = alpha.astype(np.int32) @ alpha.T.astype(np.int32)
     np.fill_diagonal(shared, -1)
     a, b = np.unravel_index(np.argmax(shared), shared.shape)
     common = np.flatnonzero(alpha[a] & alpha[b])
-    W = np.hstack([_rows_of(obs.views[k], z[view == k], common) for k in (a, b)])
+    W = np.hstack([_rows_of(point[view == k], z[view == k], common) for k in (a, b)])
     W = W - W.mean(axis=0)
     U, S, Vt = np.linalg.svd(W, full_matrices=False)
     X = np.zeros((N, 3))
@@ -191,16 +191,16 @@ def _affine_start(obs, view, point, z):
         placed |= grow
 
 
-def _rows_of(view_obs, zk, ids):
-    """Rows of one view's 2D points for the point ids ``ids``."""
-    order = np.argsort(view_obs.ids)
-    return zk[order[np.searchsorted(view_obs.ids, ids, sorter=order)]]
+def _rows_of(view_ids, zk, ids):
+    """Rows of one view's 2D points ``zk`` (of the points ``view_ids``) for the ids ``ids``."""
+    order = np.argsort(view_ids)
+    return zk[order[np.searchsorted(view_ids, ids, sorter=order)]]
 
 
-def _affine_als(obs, view, point, z, max_iter: int, tol: float):
-    """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares."""
-    N, K = obs.n_points, obs.n_views
-    X = _affine_start(obs, view, point, z)
+def affine_als(view, point, z, N: int, K: int, max_iter: int, tol: float):
+    """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares,
+    for the observations t = (view[t], point[t], z[t]) of N points in K views."""
+    X = _affine_start(view, point, z, N, K)
     everything = np.ones(len(z), dtype=bool)
     # A point seen once says nothing about the views: it fits any of them.
     informative = np.bincount(point, minlength=N)[point] >= 2
@@ -289,7 +289,8 @@ def solve_factorize(observations: Observations, *, random_state=None,
         sweeps, termination = 0, "closed form"
     else:
         view, point, z = _stacked(observations, images)
-        X, L, rms, sweeps = _affine_als(observations, view, point, z, max_iter, tol)
+        X, L, rms, sweeps = affine_als(view, point, z, observations.n_points,
+                                       observations.n_views, max_iter, tol)
         X, P = metric_upgrade(X, L)
         termination = f"affine factorisation, RMS residual {rms:.2e}"
     stress = Stress(observations).value(X, P)
