@@ -1,0 +1,439 @@
+"""Keypoints: minimise the reprojection error over the 3D points and the cameras.
+
+When views come as 2D coordinates (matched keypoints, in pixels), the problem
+they pose is bundle adjustment, not the distance stress of paper Eq. 1:
+
+    E(X, C) = sum_t rho(||u_k(x_i; C_k) - z_t||^2)
+
+over the observations t = (view k, point i, 2D point z_t), for a camera model
+u (:mod:`mpe3d.solvers.cameras`). It is solved by sparse nonlinear least
+squares (``scipy.optimize.least_squares``, trust-region reflective, with the
+analytic Jacobian as a sparse matrix: 3 + 5..7 non-zeros per row), from a
+start that cannot blow up:
+
+1. an affine factorisation with missing data (:mod:`.factorize`), every
+   point and view refitted in turn until the RMS residual stops falling;
+2. a metric upgrade that is positive definite by construction: M = A A^T
+   with A lower-triangular, fitted by least squares to the weak-perspective
+   conditions (each view's two rows orthogonal and of equal length) from
+   the linear solution and from the identity, the better one kept;
+3. bundle adjustment of the ``scaled`` model; ``orthographic`` from it with
+   one scale for all views, ``perspective`` from it at several focal lengths,
+   the one with the lowest error kept.
+
+Wrong matches are found by a robust residual scale (the median residual of
+the inliers), dropped and the problem solved again, until none is left.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.linalg import cho_factor, cho_solve
+
+from mpe3d.errors import MpeError
+
+from .base import Observations
+from .cameras import AFFINE, CAMERAS, Cameras, affine_cameras
+from .degenerate import warn
+from .factorize import _stacked, affine_als
+from .stress import project_rows
+
+LOSSES = ("l2", "huber", "soft_l1", "cauchy")
+# Focal lengths tried from the weak-perspective start, in units of the image size.
+# (Shorter ones put the cloud behind the camera: a half-image-wide object at
+# depth f / s.)
+_FOCAL_STARTS = (1.0, 2.0, 4.0)
+_SCOUT = 15  # iterations from each perspective start before the best is chosen
+# A cloud longer than this many times its second extent has not been determined
+# along its long axis: the views leave its depth free.
+_ELONGATION = 20.0
+
+
+@dataclass
+class Tracks:
+    """Every observation as flat arrays: its view, its point and its 2D point (pixels)."""
+
+    view: np.ndarray  # (T,)
+    point: np.ndarray  # (T,)
+    z: np.ndarray  # (T, 2)
+    n_points: int
+    n_views: int
+
+    @classmethod
+    def from_observations(cls, obs: Observations) -> "Tracks":
+        if any(v.coordinates is None for v in obs.views):
+            raise MpeError("the reprojection objective needs 2D coordinates in every view "
+                           "(distance matrices only allow objective='stress')")
+        view, point, z = _stacked(obs, [v.coordinates for v in obs.views])
+        return cls(view, point, np.asarray(z, dtype=float), obs.n_points, obs.n_views)
+
+
+@dataclass
+class BundleResult:
+    """Points, cameras and how well they explain the keypoints."""
+
+    points: np.ndarray  # (N, 3)
+    cameras: Cameras
+    residuals: np.ndarray  # (T, 2), pixels
+    converged: bool
+    iterations: int  # Levenberg-Marquardt iterations of the final solve
+    termination: str
+    affine_rms: float  # RMS of the affine factorisation, a floor for any camera model
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def rms(self) -> float:
+        """sqrt(mean ||r_t||^2) over the observations, in pixels."""
+        return _rms(self.residuals)
+
+
+# -- the start -------------------------------------------------------------------
+
+def metric_upgrade_pd(L: np.ndarray) -> np.ndarray:
+    """A (3x3, invertible) with L_k^T A A^T L_k = s_k^2 I as nearly as possible.
+
+    Weak perspective: each view's two camera rows (columns of L_k) are
+    orthogonal and of equal length under M = A A^T. A is lower-triangular and
+    fitted by least squares, so M is positive definite by construction, unlike
+    the linear solution, which noise or a perspective camera can make
+    indefinite (and the cloud then blows up along the clipped direction).
+    """
+    l1, l2 = L[:, :, 0], L[:, :, 1]
+    rows, cols = np.tril_indices(3)
+
+    def residual(a):
+        A = np.zeros((3, 3))
+        A[rows, cols] = a
+        u, v = l1 @ A, l2 @ A
+        p, q, r = np.sum(u * u, 1), np.sum(v * v, 1), np.sum(u * v, 1)
+        total = p + q + 1e-300
+        return np.concatenate([(p - q) / total, 2 * r / total, [np.log(np.abs(np.diag(A))).sum()]])
+
+    starts = [np.eye(3)[rows, cols]]
+    linear = _linear_upgrade(L)
+    if linear is not None:
+        starts.insert(0, linear[rows, cols])
+    best = min((least_squares(residual, a0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+                for a0 in starts), key=lambda r: r.cost)
+    A = np.zeros((3, 3))
+    A[rows, cols] = best.x
+    return A
+
+
+def _linear_upgrade(L: np.ndarray) -> np.ndarray | None:
+    """The Cholesky factor of the linear least-squares M, when it is positive definite."""
+    iu = np.triu_indices(3)
+    halve = np.where(iu[0] == iu[1], 2.0, 1.0)
+
+    def coefficients(a, b):
+        outer = np.einsum("ki,kj->kij", a, b)
+        return (outer + outer.transpose(0, 2, 1))[:, iu[0], iu[1]] / halve
+
+    l1, l2 = L[:, :, 0], L[:, :, 1]
+    # equal lengths and orthogonal rows, and the mean squared length fixed to 1
+    system = np.concatenate([coefficients(l1, l1) - coefficients(l2, l2), coefficients(l1, l2),
+                             (coefficients(l1, l1) + coefficients(l2, l2)).mean(0, keepdims=True)])
+    target = np.zeros(len(system))
+    target[-1] = 2.0
+    m = np.linalg.lstsq(system, target, rcond=None)[0]
+    M = np.zeros((3, 3))
+    M[iu] = m
+    M = M + M.T - np.diag(np.diag(M))
+    try:
+        return np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        return None
+
+
+def weak_perspective_start(tracks: Tracks, sweeps: int = 20, tol: float = 1e-10):
+    """X, orthonormal rows P (K, 2, 3), scales s and translations t from the
+    affine factorisation (``sweeps`` alternating sweeps after it is grown) and
+    the positive-definite upgrade, and the RMS of the affine fit."""
+    X, L, _, _ = affine_als(tracks.view, tracks.point, tracks.z, tracks.n_points,
+                            tracks.n_views, sweeps, tol)
+    t = _translations(X, L, tracks)
+    affine = np.einsum("tab,ta->tb", L[tracks.view], X[tracks.point]) + t[tracks.view] - tracks.z
+    A = metric_upgrade_pd(L)
+    X = X @ np.linalg.inv(A).T
+    rows = np.einsum("ia,kib->kba", A, L)  # (K, 2, 3): s_k times orthonormal rows
+    scale = np.sqrt(np.sum(rows ** 2, axis=(1, 2)) / 2)
+    norm = np.exp(np.mean(np.log(scale)))  # the cloud in pixels at the mean scale
+    X, scale = X * norm, scale / norm
+    X = X - X.mean(axis=0)
+    P = project_rows(rows)
+    t = _translations_for(X, P, scale, tracks)
+    return X, P, scale, t, _rms(affine)
+
+
+def bundle_adjust(tracks: Tracks, camera: str = "scaled", *, principal_point=None,
+                  shared_focal: bool = True, loss: str = "l2", loss_scale: float = 1.0,
+                  max_iter: int = 100, tol: float = 1e-10) -> BundleResult:
+    """Points and cameras of model ``camera`` that minimise the reprojection error.
+
+    Parameters
+    ----------
+    tracks : Tracks
+        The observations, in pixels.
+    camera : {"orthographic", "scaled", "perspective"}, default "scaled"
+    principal_point : (2,) or None, default None
+        Perspective only; None takes the centre of the keypoints' bounding box.
+    shared_focal : bool, default True
+        Perspective only: one focal length for all views, or one per view.
+    loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
+        rho of the squared residual length, with ``loss_scale`` in pixels.
+    max_iter : int, default 100
+        Levenberg-Marquardt iterations per solve.
+    tol : float, default 1e-10
+        Stop when an iteration lowers the cost by less than this fraction.
+    """
+    if camera not in CAMERAS:
+        raise MpeError(f"camera: expected one of {', '.join(CAMERAS)}, got {camera!r}")
+    if loss not in LOSSES:
+        raise MpeError(f"loss: expected one of {', '.join(LOSSES)}, got {loss!r}")
+    solve = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
+    # Two affine starts: barely polished, and after some sweeps. Which one reaches
+    # the lower minimum depends on the tracks (short ones favour the sweeps).
+    fits = []
+    for sweeps in (1, 20):
+        X, P, scale, t, affine_rms = weak_perspective_start(tracks, sweeps, tol)
+        fits.append((*adjust(X, affine_cameras("scaled", P, scale, t), tracks, **solve), affine_rms))
+    X, cameras, history, converged, affine_rms = min(fits, key=lambda f: f[2][-1])
+    if camera == "orthographic":
+        X, cameras, history, converged = _orthographic(X, cameras, tracks, solve)
+    elif camera == "perspective":
+        X, cameras, history, converged = _perspective(X, cameras, tracks, principal_point,
+                                                      shared_focal, solve)
+    residuals = cameras.project(X, tracks.view, tracks.point) - tracks.z
+    if elongation(X) > _ELONGATION:
+        warn(f"the views do not determine the cloud's depth under the {camera} camera (it is "
+             f"{elongation(X):.3g} times longer than wide): the baseline is too small for it; "
+             "try the perspective camera")
+    return BundleResult(points=X, cameras=cameras, residuals=residuals,
+                        converged=converged,
+                        iterations=len(history) - 1,
+                        termination="converged" if converged else f"stopped at max_iter={max_iter}",
+                        affine_rms=affine_rms, info={"rms_history": history})
+
+
+def _orthographic(X, scaled: Cameras, tracks, solve):
+    """From the scaled solution: one scale for all views, folded into the cloud."""
+    s = scaled.scale()
+    common = float(np.exp(np.mean(np.log(s))))
+    R = scaled.current_rotations()
+    start = affine_cameras("orthographic", R[:, :2], np.ones(len(s)), scaled.params[:, 3:5])
+    return adjust(X * common, start, tracks, **solve)
+
+
+def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, solve):
+    """From the scaled solution, at several focal lengths and in both depth
+    orders (weak perspective cannot tell a cloud from its mirror image in depth;
+    a pinhole can): a short solve from each, then the best one to the end."""
+    z = tracks.z
+    c = (z.min(axis=0) + z.max(axis=0)) / 2 if principal_point is None \
+        else np.asarray(principal_point, dtype=float)
+    size = float(np.max(np.ptp(z, axis=0)))
+    R, s, t = scaled.current_rotations(), scaled.scale(), scaled.params[:, 3:5]
+    centre = X.mean(axis=0)  # the pinhole matches the weak perspective at the centroid
+    X, t = X - centre, t + s[:, None] * (R[:, :2] @ centre)
+    X = _bounded_depth(X)
+    trials = []
+    for mirror in (1.0, -1.0):  # -X seen through -R[:2] gives the same weak-perspective images
+        for factor in _FOCAL_STARTS:
+            start = affine_cameras("perspective", mirror * R[:, :2], s, t, focal=factor * size,
+                                   principal_point=c, shared_focal=shared_focal)
+            trials.append(adjust(mirror * X, start, tracks, **{**solve, "max_iter": _SCOUT}))
+    X, cameras, scout, _ = min(trials, key=lambda f: f[2][-1])
+    X, cameras, history, converged = adjust(X, cameras, tracks, **solve)
+    return X, cameras, np.concatenate([scout, history[1:]]), converged
+
+
+def elongation(X: np.ndarray) -> float:
+    """The cloud's longest principal extent over its second: huge when a flat
+    direction of the weak-perspective problem (depth under a small baseline)
+    has run away."""
+    extents = np.ptp((X - X.mean(axis=0)) @ np.linalg.svd(X - X.mean(axis=0),
+                                                         full_matrices=False)[2].T, axis=0)
+    return float(extents[0] / max(extents[1], 1e-300))
+
+
+def _bounded_depth(X: np.ndarray, limit: float = _ELONGATION) -> np.ndarray:
+    """X with a run-away principal axis pulled in to the second one's extent: a
+    start from which no point lies behind a pinhole camera."""
+    if elongation(X) <= limit:
+        return X
+    centred = X - X.mean(axis=0)
+    axes = np.linalg.svd(centred, full_matrices=False)[2]
+    coords = centred @ axes.T
+    extents = np.ptp(coords, axis=0)
+    coords[:, 0] *= extents[1] / extents[0]
+    return coords @ axes + X.mean(axis=0)
+
+
+def _translations(X, L, tracks):
+    """The per-view 2D translations that best fit z_t ~ L_k^T x_i + t_k."""
+    pred = np.einsum("tab,ta->tb", L[tracks.view], X[tracks.point])
+    return _mean_by_view(tracks.z - pred, tracks)
+
+
+def _translations_for(X, P, scale, tracks):
+    pred = scale[tracks.view, None] * np.einsum("tab,tb->ta", P[tracks.view], X[tracks.point])
+    return _mean_by_view(tracks.z - pred, tracks)
+
+
+def _mean_by_view(values, tracks):
+    counts = np.maximum(np.bincount(tracks.view, minlength=tracks.n_views), 1)
+    return np.stack([np.bincount(tracks.view, weights=values[:, c], minlength=tracks.n_views)
+                     for c in range(2)], axis=1) / counts[:, None]
+
+
+# -- bundle adjustment -----------------------------------------------------------
+
+def _robust_weights(squared: np.ndarray, loss: str, scale: float):
+    """rho(s) summed and rho'(s) per observation, s = ||r||^2 / scale^2 (scipy's losses)."""
+    s = squared / scale ** 2
+    if loss == "l2":
+        return float(squared.sum()), np.ones_like(s)
+    if loss == "huber":
+        rho, weight = np.where(s <= 1, s, 2 * np.sqrt(s) - 1), np.where(s <= 1, 1.0, 1 / np.sqrt(np.maximum(s, 1)))
+    elif loss == "soft_l1":
+        rho, weight = 2 * (np.sqrt(1 + s) - 1), 1 / np.sqrt(1 + s)
+    else:  # cauchy
+        rho, weight = np.log1p(s), 1 / (1 + s)
+    return float(scale ** 2 * rho.sum()), weight
+
+
+class _Structure:
+    """Index arrays of the bundle's normal equations, fixed for one set of tracks:
+    for every pair of observations of one point, where its camera-camera block
+    of the reduced (Schur) system goes."""
+
+    def __init__(self, tracks: Tracks, cameras: Cameras):
+        K, pv, ns = tracks.n_views, cameras.per_view, cameras.shared.size
+        self.size = K * pv + ns
+        self.cols = np.concatenate([pv * tracks.view[:, None] + np.arange(pv),
+                                    np.broadcast_to(K * pv + np.arange(ns), (len(tracks.view), ns))],
+                                   axis=1)  # (T, pv + ns)
+        order = np.argsort(tracks.point, kind="stable")
+        counts = np.bincount(tracks.point, minlength=tracks.n_points)
+        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        # all ordered pairs (t, t') of observations of the same point
+        group = np.repeat(np.arange(tracks.n_points), counts ** 2)
+        within = np.arange(len(group)) - np.repeat(np.cumsum(counts ** 2) - counts ** 2, counts ** 2)
+        m = counts[group]
+        self.left = order[starts[group] + within // np.maximum(m, 1)]
+        self.right = order[starts[group] + within % np.maximum(m, 1)]
+        c = self.cols.shape[1]
+        self.pair_index = (self.cols[self.left][:, :, None] * self.size
+                           + self.cols[self.right][:, None, :]).reshape(len(group), c * c)
+        self.obs_index = (self.cols[:, :, None] * self.size + self.cols[:, None, :])
+
+
+def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
+           loss_scale: float = 1.0, max_iter: int = 100, tol: float = 1e-12):
+    """Levenberg-Marquardt on E(X, C) with the points eliminated (Schur complement).
+
+    Each iteration solves the damped normal equations of the (robustly
+    reweighted) Gauss-Newton step: the 3x3 block of every point is inverted
+    and the reduced camera system, K * (5..7) unknowns, solved densely. That
+    is bundle adjustment's standard solver and why its cost is linear in the
+    observations.
+
+    Returns X, cameras, the RMS history and whether it converged.
+    """
+    structure = _Structure(tracks, cameras)
+    N, view, point = tracks.n_points, tracks.view, tracks.point
+    cameras = cameras.reanchored()
+    lam = 1e-4
+
+    def evaluate(Xv, cam):
+        r = cam.project(Xv, view, point) - tracks.z
+        cost, weight = _robust_weights(np.sum(r ** 2, axis=1), loss, loss_scale)
+        return r, (cost if np.isfinite(cost) else np.inf), weight
+
+    r, cost, weight = evaluate(X, cameras)
+    if not np.isfinite(cost):  # a point behind a camera: not a start
+        return X, cameras, np.array([np.inf]), False
+    history, converged, nu = [_rms(r)], False, 2.0
+    for iteration in range(1, max_iter + 1):
+        d_x, d_view, d_shared = cameras.jacobian_blocks(X, view, point)
+        d_c = np.concatenate([d_view, d_shared], axis=2)  # (T, 2, c)
+        wr = weight[:, None] * r
+        U = _sum_rows(point, np.einsum("tai,t,taj->tij", d_x, weight, d_x), N)
+        W = np.einsum("tai,t,taj->tij", d_x, weight, d_c)  # (T, 3, c)
+        g_x = _sum_rows(point, np.einsum("tai,ta->ti", d_x, wr), N)
+        g_c = np.bincount(structure.cols.ravel(), minlength=structure.size,
+                          weights=np.einsum("taj,ta->tj", d_c, wr).ravel())
+        V = np.bincount(structure.obs_index.ravel(), minlength=structure.size ** 2,
+                        weights=np.einsum("tai,t,taj->tij", d_c, weight, d_c).ravel())
+        V = V.reshape(structure.size, structure.size)
+        while True:
+            step = _damped_step(U, V, W, g_x, g_c, lam, structure, point)
+            if step is not None:
+                dx, dc, predicted = step
+                trial_cam = cameras.with_vector(cameras.vector() + dc)
+                trial_X = X + dx
+                r_new, cost_new, weight_new = evaluate(trial_X, trial_cam)
+                if np.isfinite(cost_new) and cost_new < cost:
+                    break
+            if lam > 1e16 or (step is not None and predicted <= 1e-15 * max(cost, 1e-300)):
+                # no step lowers the cost any more: a minimum, to working precision
+                return X, cameras, np.array(history), True
+            lam, nu = lam * nu, nu * 2
+        # Nielsen's update: shrink the damping as far as the model predicted well
+        gain = (cost - cost_new) / max(predicted, 1e-300)
+        lam, nu = lam * max(1 / 3, 1 - (2 * gain - 1) ** 3), 2.0
+        decrease = cost - cost_new
+        X, cameras, r, weight, cost = trial_X, trial_cam.reanchored(), r_new, weight_new, cost_new
+        history.append(_rms(r))
+        small_step = np.sqrt(np.sum(dx ** 2) + np.sum(dc ** 2)) <= tol * (1 + np.sqrt(np.sum(X ** 2)))
+        if decrease <= tol * max(cost + decrease, 1e-300) or small_step or cost <= 1e-28:
+            converged = True
+            break
+    return X, cameras, np.array(history), converged
+
+
+def _sum_rows(index, values, size):
+    flat = values.reshape(len(values), -1)
+    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=size)
+                    for c in range(flat.shape[1])], axis=1)
+    return out.reshape((size,) + values.shape[1:])
+
+
+def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
+    """The Levenberg-Marquardt step (dx, dc) by the Schur complement and the cost
+    decrease the Gauss-Newton model predicts for it, or None if the damped
+    reduced system is not positive definite."""
+    D_x = np.einsum("nii->ni", U)
+    D_x = D_x + 1e-12 * D_x.max(axis=1, keepdims=True)
+    D_c = np.diag(V) + 1e-12 * max(np.diag(V).max(), 1e-300)
+    U_damped = U.copy()
+    U_damped[:, np.arange(3), np.arange(3)] += lam * D_x
+    try:
+        U_inv = np.linalg.inv(U_damped)
+    except np.linalg.LinAlgError:
+        return None
+    # S = V - sum_i W_i^T U_i^-1 W_i, over the pairs of observations of each point
+    left = np.matmul(U_inv[point], W)  # U_i^-1 W_t, (T, 3, c)
+    blocks = np.matmul(W[structure.left].transpose(0, 2, 1), left[structure.right])
+    S = V - np.bincount(structure.pair_index.ravel(), minlength=structure.size ** 2,
+                        weights=blocks.ravel()).reshape(structure.size, structure.size)
+    S[np.diag_indices_from(S)] += lam * D_c
+    Ug = np.einsum("nij,nj->ni", U_inv, g_x)
+    rhs = g_c - np.bincount(structure.cols.ravel(), minlength=structure.size,
+                            weights=np.einsum("tic,ti->tc", W, Ug[point]).ravel())
+    try:
+        dc = -cho_solve(cho_factor(S), rhs)
+    except np.linalg.LinAlgError:
+        return None
+    coupling = _sum_rows(point, np.einsum("tic,tc->ti", W, dc[structure.cols]), len(U))
+    dx = -np.einsum("nij,nj->ni", U_inv, g_x + coupling)
+    # cost = sum of rho: the model's decrease is -g.d + lam d.D.d (g = J^T W r)
+    predicted = float(-np.sum(g_x * dx) - g_c @ dc + lam * (np.sum(D_x * dx ** 2) + D_c @ dc ** 2))
+    return dx, dc, predicted
+
+
+def _rms(residual: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 2) ** 2, axis=1))))
