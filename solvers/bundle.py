@@ -33,11 +33,12 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse import csr_matrix
 
 from mpe3d.errors import MpeError
 
 from .base import Observations
-from .cameras import AFFINE, CAMERAS, Cameras, affine_cameras
+from .cameras import CAMERAS, Cameras, affine_cameras
 from .degenerate import warn
 from .factorize import _stacked, affine_als
 from .stress import project_rows
@@ -47,10 +48,21 @@ LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 # (Shorter ones put the cloud behind the camera: a half-image-wide object at
 # depth f / s.)
 _FOCAL_STARTS = (1.0, 2.0, 4.0)
-_SCOUT = 15  # iterations from each perspective start before the best is chosen
+_SCOUT = 8  # iterations from each start before the best is chosen
+_ROUND_TOL = 1e-6  # between two rounds of dropping wrong matches
 # A cloud longer than this many times its second extent has not been determined
 # along its long axis: the views leave its depth free.
 _ELONGATION = 20.0
+_OUTLIER_ROUNDS = 20
+_DENSE_Y = 4_000_000  # entries of the Schur factor Y below which it is made dense
+# In robust sigmas: real tracks have heavy tails (0.1% of VGG's verified house
+# and dino observations lie beyond 26-58 sigmas of a pinhole fit), while a
+# wrong match is typically hundreds of sigmas away.
+OUTLIER_THRESHOLD = 20.0
+# Rayleigh: the median of ||r|| for isotropic Gaussian 2D residuals of std sigma.
+_RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))
+AUTO_RATIO = 0.8  # camera="auto" keeps the pinhole below this share of the weak RMS
+DISAGREE_RATIO = 0.5  # another model this much better is said
 
 
 @dataclass
@@ -71,6 +83,9 @@ class Tracks:
         view, point, z = _stacked(obs, [v.coordinates for v in obs.views])
         return cls(view, point, np.asarray(z, dtype=float), obs.n_points, obs.n_views)
 
+    def subset(self, rows: np.ndarray) -> "Tracks":
+        return Tracks(self.view[rows], self.point[rows], self.z[rows], self.n_points, self.n_views)
+
 
 @dataclass
 class BundleResult:
@@ -78,16 +93,18 @@ class BundleResult:
 
     points: np.ndarray  # (N, 3)
     cameras: Cameras
-    residuals: np.ndarray  # (T, 2), pixels
+    residuals: np.ndarray  # (T, 2), pixels, for every observation
+    dropped: np.ndarray  # (T,) bool: observations taken for wrong matches
     converged: bool
     iterations: int  # Levenberg-Marquardt iterations of the final solve
     termination: str
     affine_rms: float  # RMS of the affine factorisation, a floor for any camera model
+    camera: str = "scaled"  # the model fitted (auto resolved)
     info: dict[str, Any] = field(default_factory=dict)
 
-    def rms(self) -> float:
-        """sqrt(mean ||r_t||^2) over the observations, in pixels."""
-        return _rms(self.residuals)
+    def rms(self, rows=None) -> float:
+        """sqrt(mean ||r_t||^2) in pixels over ``rows``, default all but the dropped."""
+        return _rms(self.residuals[~self.dropped if rows is None else rows])
 
 
 # -- the start -------------------------------------------------------------------
@@ -168,57 +185,193 @@ def weak_perspective_start(tracks: Tracks, sweeps: int = 20, tol: float = 1e-10)
     return X, P, scale, t, _rms(affine)
 
 
-def bundle_adjust(tracks: Tracks, camera: str = "scaled", *, principal_point=None,
+def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
                   shared_focal: bool = True, loss: str = "l2", loss_scale: float = 1.0,
-                  max_iter: int = 100, tol: float = 1e-10) -> BundleResult:
+                  outlier_threshold: float = OUTLIER_THRESHOLD, max_iter: int = 100,
+                  tol: float = 1e-10) -> BundleResult:
     """Points and cameras of model ``camera`` that minimise the reprojection error.
 
     Parameters
     ----------
     tracks : Tracks
         The observations, in pixels.
-    camera : {"orthographic", "scaled", "perspective"}, default "scaled"
+    camera : {"auto", "orthographic", "scaled", "perspective"}, default "auto"
+        "auto" fits ``scaled`` and ``perspective`` and keeps the pinhole camera
+        when it explains the keypoints clearly better (RMS below
+        ``AUTO_RATIO`` times the weak perspective's).
     principal_point : (2,) or None, default None
         Perspective only; None takes the centre of the keypoints' bounding box.
     shared_focal : bool, default True
         Perspective only: one focal length for all views, or one per view.
     loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
         rho of the squared residual length, with ``loss_scale`` in pixels.
+    outlier_threshold : float, default OUTLIER_THRESHOLD
+        An observation whose residual is longer than this many robust sigmas
+        (from the median residual length) is taken for a wrong match, dropped,
+        and the problem solved again, until none is left; ``inf`` keeps all.
     max_iter : int, default 100
         Levenberg-Marquardt iterations per solve.
     tol : float, default 1e-10
         Stop when an iteration lowers the cost by less than this fraction.
     """
-    if camera not in CAMERAS:
-        raise MpeError(f"camera: expected one of {', '.join(CAMERAS)}, got {camera!r}")
+    if camera not in ("auto",) + CAMERAS:
+        raise MpeError(f"camera: expected one of auto, {', '.join(CAMERAS)}, got {camera!r}")
     if loss not in LOSSES:
         raise MpeError(f"loss: expected one of {', '.join(LOSSES)}, got {loss!r}")
     solve = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
-    # Two affine starts: barely polished, and after some sweeps. Which one reaches
-    # the lower minimum depends on the tracks (short ones favour the sweeps).
-    fits = []
-    for sweeps in (1, 20):
-        X, P, scale, t, affine_rms = weak_perspective_start(tracks, sweeps, tol)
-        fits.append((*adjust(X, affine_cameras("scaled", P, scale, t), tracks, **solve), affine_rms))
-    X, cameras, history, converged, affine_rms = min(fits, key=lambda f: f[2][-1])
-    if camera == "orthographic":
-        X, cameras, history, converged = _orthographic(X, cameras, tracks, solve)
-    elif camera == "perspective":
-        X, cameras, history, converged = _perspective(X, cameras, tracks, principal_point,
-                                                      shared_focal, solve)
+    used = _informative(tracks, np.ones(len(tracks.view), dtype=bool))
+    fit, affine_rms = _scaled(tracks.subset(used), solve)
+    # The models are compared on the same observations, before any is dropped:
+    # a weak-perspective misfit of perspective data is no wrong match.
+    fits = {"scaled": fit}
+    wanted = ("scaled", "perspective") if camera == "auto" else (camera,)
+    others = {"orthographic": ("scaled", "perspective"), "scaled": ("perspective",),
+              "perspective": ("scaled",)}
+    for model in dict.fromkeys(wanted + others.get(camera, ())):  # the check's fits too
+        if model not in fits:
+            fits[model] = (_orthographic if model == "orthographic" else _perspective)(
+                *fit[:2], tracks.subset(used), principal_point, shared_focal, solve)
+    rms = {model: _rms_of(f, tracks, used) for model, f in fits.items()}
+    if camera == "auto":
+        camera = "perspective" if rms["perspective"] < AUTO_RATIO * rms["scaled"] else "scaled"
+    _say_if_the_data_disagree(camera, rms)
+    fit, dropped = _without_outliers(fits[camera], tracks, np.zeros(len(used), dtype=bool),
+                                     outlier_threshold, solve)
+    used = _informative(tracks, ~dropped)
+    X, cameras, history, converged = fit
+    placed = _placed(tracks, used)
+    X = _place_unplaced(X, cameras, tracks, placed, ~dropped)
     residuals = cameras.project(X, tracks.view, tracks.point) - tracks.z
-    if elongation(X) > _ELONGATION:
+    if elongation(X[placed]) > _ELONGATION:
         warn(f"the views do not determine the cloud's depth under the {camera} camera (it is "
-             f"{elongation(X):.3g} times longer than wide): the baseline is too small for it; "
-             "try the perspective camera")
-    return BundleResult(points=X, cameras=cameras, residuals=residuals,
-                        converged=converged,
-                        iterations=len(history) - 1,
+             f"{elongation(X[placed]):.3g} times longer than wide): their baseline is too "
+             "small for it" + ("" if camera == "perspective" else "; try camera='perspective'"))
+    return BundleResult(points=X, cameras=cameras, residuals=residuals, dropped=dropped,
+                        converged=converged, iterations=len(history) - 1,
                         termination="converged" if converged else f"stopped at max_iter={max_iter}",
-                        affine_rms=affine_rms, info={"rms_history": history})
+                        affine_rms=affine_rms, camera=camera,
+                        info={"rms_history": history, "rms_by_camera": rms,
+                              "placed": placed})
 
 
-def _orthographic(X, scaled: Cameras, tracks, solve):
+def _scaled(tracks, solve):
+    """The scaled fit from two affine starts: barely polished, and after some
+    sweeps. Which one reaches the lower minimum depends on the tracks, so each
+    is scouted for a few iterations and the better one solved to the end."""
+    starts = []
+    for sweeps in (1, 20):
+        X, P, scale, t, affine_rms = weak_perspective_start(tracks, sweeps, solve["tol"])
+        starts.append(((X, affine_cameras("scaled", P, scale, t)), affine_rms))
+    return _best_of(starts, tracks, solve)
+
+
+def _best_of(starts, tracks, solve):
+    """Scout each ((X, cameras), extra) start for a few iterations, then solve
+    the lowest to the end; returns (X, cameras, history, converged) and its extra."""
+    scouted = [(adjust(*start, tracks, **{**solve, "max_iter": _SCOUT}), extra)
+               for start, extra in starts]
+    (X, cameras, scout, _), extra = min(scouted, key=lambda f: f[0][2][-1])
+    X, cameras, history, converged = adjust(X, cameras, tracks, **solve)
+    return (X, cameras, np.concatenate([scout, history[1:]]), converged), extra
+
+
+def _informative(tracks: Tracks, kept: np.ndarray) -> np.ndarray:
+    """The observations ``kept`` less those of points kept in fewer than 2 views: a point
+    seen once fits any camera, so it says nothing about them (it is placed on
+    its ray afterwards)."""
+    counts = np.bincount(tracks.point[kept], minlength=tracks.n_points)
+    return kept & (counts[tracks.point] >= 2)
+
+
+def _placed(tracks, used) -> np.ndarray:
+    """(N,) bool: the points the solve placed (seen in 2 or more views)."""
+    return np.bincount(tracks.point[used], minlength=tracks.n_points) >= 2
+
+
+def _rms_of(fit, tracks, kept) -> float:
+    X, cameras = fit[:2]
+    return _rms(cameras.project(X, tracks.view[kept], tracks.point[kept]) - tracks.z[kept])
+
+
+def _without_outliers(fit, tracks, dropped, threshold, solve):
+    """Find wrong matches, drop them and solve again, until none is left.
+
+    Peeling: the observations beyond ``threshold`` robust sigmas (from the
+    median residual length) are dropped, at most one per point and round (its
+    worst: a wrong match drags its point, and so the point's other residuals,
+    with it), and only where the point keeps 3 views, so that it stays placed
+    and testable. As the fit sheds them the sigma shrinks and subtler ones
+    show. A view keeps at least 6 observations.
+    """
+    if not np.isfinite(threshold):
+        return fit, dropped
+    before = dropped
+    for _ in range(_OUTLIER_ROUNDS):
+        kept = _informative(tracks, ~dropped)
+        X, cameras = fit[:2]
+        sigma = _sigma(X, cameras, tracks, kept)
+        length = np.linalg.norm(cameras.project(X, tracks.view, tracks.point) - tracks.z, axis=1)
+        length = np.where(kept, np.nan_to_num(length, nan=np.inf), -1.0)
+        worst = np.full(tracks.n_points, -1)
+        ranked = np.argsort(length)
+        worst[tracks.point[ranked]] = ranked  # each point's longest residual is written last
+        worst = worst[worst >= 0]
+        counts = np.bincount(tracks.point[kept], minlength=tracks.n_points)
+        worst = worst[(length[worst] > threshold * sigma) & (counts[tracks.point[worst]] >= 4)]
+        bad = np.zeros(len(tracks.view), dtype=bool)
+        bad[worst] = True
+        room = np.bincount(tracks.view[~dropped & ~bad], minlength=tracks.n_views) >= 6
+        bad &= room[tracks.view]
+        if not bad.any():
+            break
+        dropped = dropped | bad
+        fit = adjust(X, cameras, tracks.subset(_informative(tracks, ~dropped)),
+                     **{**solve, "tol": max(solve["tol"], _ROUND_TOL)})
+    if (dropped != before).any():  # the rounds solve loosely: the last one to the end
+        fit = adjust(*fit[:2], tracks.subset(_informative(tracks, ~dropped)), **solve)
+    return fit, dropped
+
+
+def _sigma(X, cameras, tracks, kept) -> float:
+    length = np.linalg.norm(cameras.project(X, tracks.view[kept], tracks.point[kept])
+                            - tracks.z[kept], axis=1)
+    return max(float(np.median(length)) / _RAYLEIGH_MEDIAN, 1e-12 * _image_size(tracks))
+
+
+def _image_size(tracks) -> float:
+    return float(np.max(np.ptp(tracks.z, axis=0))) or 1.0
+
+
+def _say_if_the_data_disagree(camera, rms):
+    """One line when another camera model explains the keypoints far better."""
+    better = {model: value for model, value in rms.items()
+              if model != camera and value < DISAGREE_RATIO * rms[camera]}
+    if better:
+        model = min(better, key=better.get)
+        warn(f"the keypoints disagree with the {camera} camera: RMS {rms[camera]:.3g} px, "
+             f"against {better[model]:.3g} px with the {model} camera (camera='{model}')")
+
+
+def _place_unplaced(X, cameras, tracks, placed, kept):
+    """Points kept in fewer than 2 views have no depth: each goes where its one
+    view puts it at the depth of the cloud's centre (its other coordinates are
+    the least-squares ones of the views it has)."""
+    X = X.copy()
+    centre = X[placed].mean(axis=0) if placed.any() else np.zeros(3)
+    X[~placed] = centre
+    lonely = ~placed[tracks.point] & kept
+    if not lonely.any():
+        return X
+    # one Gauss-Newton step from the centre moves x only across the view's rays
+    d_x, _, _ = cameras.jacobian_blocks(X, tracks.view[lonely], tracks.point[lonely])
+    r = cameras.project(X, tracks.view[lonely], tracks.point[lonely]) - tracks.z[lonely]
+    step = np.einsum("tij,tj->ti", np.linalg.pinv(d_x), -r)
+    counts = np.maximum(np.bincount(tracks.point[lonely], minlength=tracks.n_points), 1)
+    X += _sum_rows(tracks.point[lonely], step, tracks.n_points) / counts[:, None]
+    return X
+
+
+def _orthographic(X, scaled: Cameras, tracks, principal_point, shared_focal, solve):
     """From the scaled solution: one scale for all views, folded into the cloud."""
     s = scaled.scale()
     common = float(np.exp(np.mean(np.log(s))))
@@ -239,15 +392,13 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, solv
     centre = X.mean(axis=0)  # the pinhole matches the weak perspective at the centroid
     X, t = X - centre, t + s[:, None] * (R[:, :2] @ centre)
     X = _bounded_depth(X)
-    trials = []
+    starts = []
     for mirror in (1.0, -1.0):  # -X seen through -R[:2] gives the same weak-perspective images
         for factor in _FOCAL_STARTS:
-            start = affine_cameras("perspective", mirror * R[:, :2], s, t, focal=factor * size,
-                                   principal_point=c, shared_focal=shared_focal)
-            trials.append(adjust(mirror * X, start, tracks, **{**solve, "max_iter": _SCOUT}))
-    X, cameras, scout, _ = min(trials, key=lambda f: f[2][-1])
-    X, cameras, history, converged = adjust(X, cameras, tracks, **solve)
-    return X, cameras, np.concatenate([scout, history[1:]]), converged
+            starts.append(((mirror * X, affine_cameras(
+                "perspective", mirror * R[:, :2], s, t, focal=factor * size,
+                principal_point=c, shared_focal=shared_focal)), None))
+    return _best_of(starts, tracks, solve)[0]
 
 
 def elongation(X: np.ndarray) -> float:
@@ -307,8 +458,8 @@ def _robust_weights(squared: np.ndarray, loss: str, scale: float):
 
 class _Structure:
     """Index arrays of the bundle's normal equations, fixed for one set of tracks:
-    for every pair of observations of one point, where its camera-camera block
-    of the reduced (Schur) system goes."""
+    each observation's camera columns, where its block of the camera system
+    goes, and the sparsity of Y (rows: a point's 3 axes; columns: cameras)."""
 
     def __init__(self, tracks: Tracks, cameras: Cameras):
         K, pv, ns = tracks.n_views, cameras.per_view, cameras.shared.size
@@ -316,18 +467,14 @@ class _Structure:
         self.cols = np.concatenate([pv * tracks.view[:, None] + np.arange(pv),
                                     np.broadcast_to(K * pv + np.arange(ns), (len(tracks.view), ns))],
                                    axis=1)  # (T, pv + ns)
-        order = np.argsort(tracks.point, kind="stable")
-        counts = np.bincount(tracks.point, minlength=tracks.n_points)
-        starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        # all ordered pairs (t, t') of observations of the same point
-        group = np.repeat(np.arange(tracks.n_points), counts ** 2)
-        within = np.arange(len(group)) - np.repeat(np.cumsum(counts ** 2) - counts ** 2, counts ** 2)
-        m = counts[group]
-        self.left = order[starts[group] + within // np.maximum(m, 1)]
-        self.right = order[starts[group] + within % np.maximum(m, 1)]
+        # each (observation, axis) gives the c entries of row 3 * point + axis
         c = self.cols.shape[1]
-        self.pair_index = (self.cols[self.left][:, :, None] * self.size
-                           + self.cols[self.right][:, None, :]).reshape(len(group), c * c)
+        rows = (3 * tracks.point[:, None] + np.arange(3)).ravel()  # (T * 3,)
+        order = np.argsort(rows, kind="stable")
+        self.y_order = order
+        counts = np.bincount(rows, minlength=3 * tracks.n_points) * c
+        self.y_indptr = np.concatenate([[0], np.cumsum(counts)])
+        self.y_indices = np.repeat(self.cols, 3, axis=0)[order].ravel()
         self.obs_index = (self.cols[:, :, None] * self.size + self.cols[:, None, :])
 
 
@@ -345,6 +492,7 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     """
     structure = _Structure(tracks, cameras)
     N, view, point = tracks.n_points, tracks.view, tracks.point
+    unseen = np.bincount(point, minlength=N) == 0  # points without observations stay put
     cameras = cameras.reanchored()
     lam = 1e-4
 
@@ -362,6 +510,7 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
         d_c = np.concatenate([d_view, d_shared], axis=2)  # (T, 2, c)
         wr = weight[:, None] * r
         U = _sum_rows(point, np.einsum("tai,t,taj->tij", d_x, weight, d_x), N)
+        U[unseen] = np.eye(3)
         W = np.einsum("tai,t,taj->tij", d_x, weight, d_c)  # (T, 3, c)
         g_x = _sum_rows(point, np.einsum("tai,ta->ti", d_x, wr), N)
         g_c = np.bincount(structure.cols.ravel(), minlength=structure.size,
@@ -415,11 +564,18 @@ def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
         U_inv = np.linalg.inv(U_damped)
     except np.linalg.LinAlgError:
         return None
-    # S = V - sum_i W_i^T U_i^-1 W_i, over the pairs of observations of each point
-    left = np.matmul(U_inv[point], W)  # U_i^-1 W_t, (T, 3, c)
-    blocks = np.matmul(W[structure.left].transpose(0, 2, 1), left[structure.right])
-    S = V - np.bincount(structure.pair_index.ravel(), minlength=structure.size ** 2,
-                        weights=blocks.ravel()).reshape(structure.size, structure.size)
+    # S = V - sum_i W_i^T U_i^-1 W_i = V - Y^T Y, Y the sparse stack of U_i^-1/2 W_i
+    values, vectors = np.linalg.eigh(U_damped)
+    root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
+    data = np.matmul(root[point], W).reshape(-1, W.shape[2])[structure.y_order]
+    Y = csr_matrix((data.ravel(), structure.y_indices, structure.y_indptr),
+                   shape=(3 * len(U), structure.size))
+    Y.sum_duplicates()  # the shared columns (focal length) recur within a row
+    if Y.shape[0] * Y.shape[1] <= _DENSE_Y:  # few points: BLAS on the dense Y is faster
+        Y = Y.toarray()
+        S = V - Y.T @ Y
+    else:
+        S = V - (Y.T @ Y).toarray()
     S[np.diag_indices_from(S)] += lam * D_c
     Ug = np.einsum("nij,nj->ni", U_inv, g_x)
     rhs = g_c - np.bincount(structure.cols.ravel(), minlength=structure.size,
