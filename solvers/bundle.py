@@ -38,7 +38,7 @@ from scipy.sparse import csr_matrix
 from mpe3d.errors import MpeError
 
 from .base import Observations
-from .cameras import CAMERAS, Cameras, affine_cameras
+from .cameras import CAMERAS, MATRIX, Cameras, affine_cameras, known_matrices
 from .degenerate import warn
 from .factorize import _stacked, affine_als
 from .stress import project_rows
@@ -50,6 +50,7 @@ LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 _FOCAL_STARTS = (1.0, 2.0, 4.0)
 _SCOUT = 8  # iterations from each start before the best is chosen
 _ROUND_TOL = 1e-6  # between two rounds of dropping wrong matches
+_TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins in turn
 # A cloud longer than this many times its second extent has not been determined
 # along its long axis: the views leave its depth free.
 _ELONGATION = 20.0
@@ -237,12 +238,16 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     _say_if_the_data_disagree(camera, rms)
     fit, dropped = _without_outliers(fits[camera], tracks, np.zeros(len(used), dtype=bool),
                                      outlier_threshold, solve)
-    used = _informative(tracks, ~dropped)
+    return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms)
+
+
+def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms) -> BundleResult:
+    """The result of a fit: points seen once placed on their rays, every residual."""
     X, cameras, history, converged = fit
-    placed = _placed(tracks, used)
+    placed = _placed(tracks, _informative(tracks, ~dropped))
     X = _place_unplaced(X, cameras, tracks, placed, ~dropped)
     residuals = cameras.project(X, tracks.view, tracks.point) - tracks.z
-    if elongation(X[placed]) > _ELONGATION:
+    if placed.sum() > 3 and elongation(X[placed]) > _ELONGATION:
         warn(f"the views do not determine the cloud's depth under the {camera} camera (it is "
              f"{elongation(X[placed]):.3g} times longer than wide): their baseline is too "
              "small for it" + ("" if camera == "perspective" else "; try camera='perspective'"))
@@ -250,8 +255,56 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
                         converged=converged, iterations=len(history) - 1,
                         termination="converged" if converged else f"stopped at max_iter={max_iter}",
                         affine_rms=affine_rms, camera=camera,
-                        info={"rms_history": history, "rms_by_camera": rms,
-                              "placed": placed})
+                        info={"rms_history": history, "rms_by_camera": rms, "placed": placed})
+
+
+def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
+                  loss_scale: float = 1.0, outlier_threshold: float = OUTLIER_THRESHOLD,
+                  max_iter: int = 100, tol: float = 1e-10) -> BundleResult:
+    """The points (and each view's 2D translation) for known cameras: (K, 2, 3)
+    orthonormal rows, an orthographic camera whose image origin is free, or
+    (K, 3, 4) pinhole matrices, which fix everything but the points."""
+    if loss not in LOSSES:
+        raise MpeError(f"loss: expected one of {', '.join(LOSSES)}, got {loss!r}")
+    solve = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
+    matrices = np.asarray(matrices, dtype=float)
+    used = _informative(tracks, np.ones(len(tracks.view), dtype=bool))
+    sub = tracks.subset(used)
+    if matrices.shape[1:] == (3, 4):
+        cameras, frozen = known_matrices(matrices), None
+        A, b = _pinhole_rows(matrices, sub.view, sub.z)
+    else:
+        cameras = affine_cameras("orthographic", matrices, np.ones(len(matrices)),
+                                 np.zeros((len(matrices), 2)))
+        frozen = np.zeros(cameras.vector().size, dtype=bool)
+        frozen.reshape(len(matrices), -1)[:, :3] = True
+        # z = P x + t is linear in (x, t): alternate the two, from t = the view means
+        A, b = matrices[sub.view], sub.z
+        for _ in range(_TRANSLATION_SWEEPS):
+            X = _least_squares_points(A, b - cameras.params[sub.view, 3:5], sub)
+            cameras.params[:, 3:5] = _mean_by_view(sub.z - np.einsum("tij,tj->ti", A, X[sub.point]), sub)
+    if cameras.model == MATRIX:
+        X = _least_squares_points(A, b, sub)
+    fit = adjust(X, cameras, sub, **solve, frozen=frozen)
+    fit, dropped = _without_outliers(fit, tracks, np.zeros(len(used), dtype=bool),
+                                     outlier_threshold, {**solve, "frozen": frozen})
+    return _result(fit, tracks, dropped, cameras.model if cameras.model == MATRIX
+                   else "orthographic", max_iter, float("nan"), {})
+
+
+def _pinhole_rows(P, view, z):
+    """The DLT: two linear equations A x = b per observation of a 3x4 camera."""
+    P = P[view]
+    A = P[:, :2, :3] - z[:, :, None] * P[:, 2:3, :3]
+    b = z * P[:, 2:3, 3] - P[:, :2, 3]
+    return A, b
+
+
+def _least_squares_points(A, b, tracks):
+    """x_i minimising sum_t ||A_t x_i - b_t||^2 over each point's observations."""
+    lhs = _sum_rows(tracks.point, np.einsum("tai,taj->tij", A, A), tracks.n_points)
+    rhs = _sum_rows(tracks.point, np.einsum("tai,ta->ti", A, b), tracks.n_points)
+    return np.einsum("nij,nj->ni", np.linalg.pinv(lhs), rhs)
 
 
 def _scaled(tracks, solve):
@@ -479,7 +532,8 @@ class _Structure:
 
 
 def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
-           loss_scale: float = 1.0, max_iter: int = 100, tol: float = 1e-12):
+           loss_scale: float = 1.0, max_iter: int = 100, tol: float = 1e-12,
+           frozen: np.ndarray | None = None):
     """Levenberg-Marquardt on E(X, C) with the points eliminated (Schur complement).
 
     Each iteration solves the damped normal equations of the (robustly
@@ -488,9 +542,12 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     is bundle adjustment's standard solver and why its cost is linear in the
     observations.
 
-    Returns X, cameras, the RMS history and whether it converged.
+    ``frozen`` (a mask over ``cameras.vector()``) holds camera parameters
+    fixed: known rotations. Returns X, cameras, the RMS history and whether it
+    converged.
     """
     structure = _Structure(tracks, cameras)
+    free = np.ones(structure.size) if frozen is None else (~np.asarray(frozen)).astype(float)
     N, view, point = tracks.n_points, tracks.view, tracks.point
     unseen = np.bincount(point, minlength=N) == 0  # points without observations stay put
     cameras = cameras.reanchored()
@@ -508,6 +565,7 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     for iteration in range(1, max_iter + 1):
         d_x, d_view, d_shared = cameras.jacobian_blocks(X, view, point)
         d_c = np.concatenate([d_view, d_shared], axis=2)  # (T, 2, c)
+        d_c = d_c * free[structure.cols][:, None, :]
         wr = weight[:, None] * r
         U = _sum_rows(point, np.einsum("tai,t,taj->tij", d_x, weight, d_x), N)
         U[unseen] = np.eye(3)
@@ -517,7 +575,7 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
                           weights=np.einsum("taj,ta->tj", d_c, wr).ravel())
         V = np.bincount(structure.obs_index.ravel(), minlength=structure.size ** 2,
                         weights=np.einsum("tai,t,taj->tij", d_c, weight, d_c).ravel())
-        V = V.reshape(structure.size, structure.size)
+        V = V.reshape(structure.size, structure.size).astype(float)
         while True:
             step = _damped_step(U, V, W, g_x, g_c, lam, structure, point)
             if step is not None:
@@ -551,37 +609,40 @@ def _sum_rows(index, values, size):
     return out.reshape((size,) + values.shape[1:])
 
 
+def _schur_term(U_damped, W, structure, point):
+    """sum_i W_i^T U_i^-1 W_i = Y^T Y, with Y the sparse stack of U_i^-1/2 W_i."""
+    values, vectors = np.linalg.eigh(U_damped)
+    root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
+    data = np.matmul(root[point], W).reshape(-1, W.shape[2])[structure.y_order]
+    Y = csr_matrix((data.ravel(), structure.y_indices, structure.y_indptr),
+                   shape=(3 * len(U_damped), structure.size))
+    Y.sum_duplicates()  # the shared columns (focal length) recur within a row
+    if Y.shape[0] * Y.shape[1] <= _DENSE_Y:  # few points: BLAS on the dense Y is faster
+        Y = Y.toarray()
+        return Y.T @ Y
+    return (Y.T @ Y).toarray()
+
+
 def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
     """The Levenberg-Marquardt step (dx, dc) by the Schur complement and the cost
     decrease the Gauss-Newton model predicts for it, or None if the damped
     reduced system is not positive definite."""
     D_x = np.einsum("nii->ni", U)
     D_x = D_x + 1e-12 * D_x.max(axis=1, keepdims=True)
-    D_c = np.diag(V) + 1e-12 * max(np.diag(V).max(), 1e-300)
+    D_c = np.diag(V) + 1e-12 * max(np.diag(V).max(initial=0.0), 1e-300)
     U_damped = U.copy()
     U_damped[:, np.arange(3), np.arange(3)] += lam * D_x
     try:
         U_inv = np.linalg.inv(U_damped)
     except np.linalg.LinAlgError:
         return None
-    # S = V - sum_i W_i^T U_i^-1 W_i = V - Y^T Y, Y the sparse stack of U_i^-1/2 W_i
-    values, vectors = np.linalg.eigh(U_damped)
-    root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
-    data = np.matmul(root[point], W).reshape(-1, W.shape[2])[structure.y_order]
-    Y = csr_matrix((data.ravel(), structure.y_indices, structure.y_indptr),
-                   shape=(3 * len(U), structure.size))
-    Y.sum_duplicates()  # the shared columns (focal length) recur within a row
-    if Y.shape[0] * Y.shape[1] <= _DENSE_Y:  # few points: BLAS on the dense Y is faster
-        Y = Y.toarray()
-        S = V - Y.T @ Y
-    else:
-        S = V - (Y.T @ Y).toarray()
+    S = V - _schur_term(U_damped, W, structure, point) if structure.size else V
     S[np.diag_indices_from(S)] += lam * D_c
     Ug = np.einsum("nij,nj->ni", U_inv, g_x)
     rhs = g_c - np.bincount(structure.cols.ravel(), minlength=structure.size,
                             weights=np.einsum("tic,ti->tc", W, Ug[point]).ravel())
     try:
-        dc = -cho_solve(cho_factor(S), rhs)
+        dc = -cho_solve(cho_factor(S), rhs) if len(rhs) else rhs  # known cameras: none
     except np.linalg.LinAlgError:
         return None
     coupling = _sum_rows(point, np.einsum("tic,tc->ti", W, dc[structure.cols]), len(U))

@@ -25,6 +25,8 @@ CAMERAS = ("orthographic", "scaled", "perspective")
 # The affine camera u = A x + t (A any 2x3) is no camera model a user picks: it is
 # the start, and the floor that no metric model's error can go below.
 AFFINE = "affine"
+# Known 3x4 camera matrices, u = (P [x; 1])[:2] / (P [x; 1])[2]: nothing to fit.
+MATRIX = "matrix"
 
 
 def hat(v: np.ndarray) -> np.ndarray:
@@ -76,7 +78,7 @@ class Cameras:
     """
 
     model: str
-    rotations: np.ndarray  # (K, 3, 3) anchors R0
+    rotations: np.ndarray  # (K, 3, 3) anchors R0; (K, 3, 4) camera matrices for MATRIX
     params: np.ndarray  # (K, per_view)
     shared: np.ndarray  # (0,) or (1,) = [log f]
     principal_point: np.ndarray  # (2,), perspective only
@@ -95,7 +97,7 @@ class Cameras:
 
     def reanchored(self) -> "Cameras":
         """The same cameras with w folded into R0 (w = 0 again)."""
-        if self.model == AFFINE:
+        if self.model in (AFFINE, MATRIX):
             return self
         params = self.params.copy()
         params[:, :3] = 0.0
@@ -126,6 +128,10 @@ class Cameras:
         if self.model == AFFINE:
             A = self.params[:, :6].reshape(-1, 2, 3)
             return np.einsum("tij,tj->ti", A[view], X[point]) + self.params[view, 6:8]
+        if self.model == MATRIX:
+            p = np.einsum("tij,tj->ti", self.rotations[view, :, :3], X[point]) \
+                + self.rotations[view, :, 3]
+            return p[:, :2] / p[:, 2:3]  # a matrix's overall sign is the user's: no cheirality
         R = self.current_rotations()
         q = np.einsum("tij,tj->ti", R[view], X[point])
         if self.model != "perspective":
@@ -145,6 +151,12 @@ class Cameras:
             d_view[:, 0, 0:3], d_view[:, 1, 3:6] = x, x
             d_view[:, 0, 6] = d_view[:, 1, 7] = 1.0
             return self.params[view, :6].reshape(T, 2, 3), d_view, np.zeros((T, 2, 0))
+        if self.model == MATRIX:
+            P = self.rotations[view]
+            p = np.einsum("tij,tj->ti", P[:, :, :3], x) + P[:, :, 3]
+            u = p[:, :2] / p[:, 2:3]
+            d_x = (P[:, :2, :3] - u[:, :, None] * P[:, 2:3, :3]) / p[:, 2:3, None]
+            return d_x, np.zeros((T, 2, 0)), np.zeros((T, 2, 0))
         R = self.current_rotations()[view]
         q = np.einsum("tij,tj->ti", R, x)
         dq_dw = -R @ hat(x) @ right_jacobian(self.params[:, :3])[view]
@@ -175,6 +187,8 @@ class Cameras:
 
     def matrices(self) -> list[dict]:
         """Each view's camera as plain numbers, for the report."""
+        if self.model == MATRIX:
+            return [{"P": P.tolist()} for P in self.rotations]
         R = self.current_rotations()
         out = []
         for k in range(len(R)):
@@ -189,6 +203,12 @@ class Cameras:
                             "translation_px": self.params[k, 3:5].tolist(),
                             "P": (self.scale()[k] * R[k, :2]).tolist()})
         return out
+
+
+def known_matrices(P: np.ndarray) -> Cameras:
+    """Cameras fixed to the 3x4 matrices P (K, 3, 4)."""
+    P = np.asarray(P, dtype=float)
+    return Cameras(MATRIX, P, np.zeros((len(P), 0)), np.zeros(0), np.zeros(2))
 
 
 def affine_cameras(model: str, P: np.ndarray, scale: np.ndarray, t: np.ndarray,

@@ -26,25 +26,42 @@ SHARED_FIXED, SHARED_VARIABLE = 3, 4
 
 
 class DegenerateWarning(UserWarning):
-    """The input leaves part of the reconstruction undetermined."""
+    """The input leaves part of the reconstruction undetermined.
+
+    ``template`` and ``ids`` keep the point ids a message names apart from its
+    text, so that a caller who knows the user's ids can say those instead of
+    the solver's indices (:func:`collect_notes`).
+    """
+
+    def __init__(self, template: str, ids=None):
+        self.template, self.ids = template, ids
+        super().__init__(template.format(ids=_ids(np.asarray(ids))) if ids is not None else template)
+
+    def render(self, labels=None) -> str:
+        if self.ids is None or labels is None:
+            return str(self)
+        return self.template.format(ids=_ids(np.asarray(labels)[np.asarray(self.ids)]))
 
 
-def warn(message: str) -> None:
-    warnings.warn(message, DegenerateWarning, stacklevel=3)
+def warn(message: str, ids=None) -> None:
+    """Warn about the input; a message naming points says ``{ids}`` and passes them."""
+    warnings.warn(DegenerateWarning(message, ids), stacklevel=3)
 
 
 @contextlib.contextmanager
-def collect_notes() -> Iterator[list[str]]:
+def collect_notes(labels=None) -> Iterator[list[str]]:
     """Collect the :class:`DegenerateWarning` messages raised inside the block
     (notes about the input, which travel with the result) into the yielded
-    list, filled when the block ends; other warnings go on as usual."""
+    list, filled when the block ends, naming points by ``labels[index]`` when
+    given; other warnings go on as usual."""
     notes: list[str] = []
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", DegenerateWarning)
         yield notes
     for w in caught:
         if issubclass(w.category, DegenerateWarning):
-            notes.append(str(w.message))
+            notes.append(w.message.render(labels) if isinstance(w.message, DegenerateWarning)
+                         else str(w.message))
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
 
@@ -76,5 +93,5 @@ def check_geometry(obs: Observations) -> np.ndarray:
     unplaced = np.flatnonzero(alpha.sum(axis=0) < 2)
     if len(unplaced):
         warn(f"{len(unplaced)} points are seen in fewer than 2 views and cannot be placed: "
-             f"ids {_ids(unplaced)}")
+             "ids {ids}", ids=unplaced)
     return unplaced
