@@ -339,7 +339,8 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from .reconstruct import check_ids_fit, check_output, prepare, solve, write_result
+    from .formats import check_ids_fit, check_output, write_result
+    from .reconstruct import prepare, solve
 
     if args.seed < 0:
         raise MpeError(f"--seed: expected an integer >= 0, got {args.seed}")
@@ -348,20 +349,40 @@ def cmd_reconstruct(args) -> int:
     if report is not None and report.resolve() == out.resolve():
         raise MpeError(f"--report {report}: the same file as --out")
     problem = prepare(args.input, projections=args.projections, solver=args.solver,
-                      loss=args.loss, random_state=args.seed)
+                      loss=args.loss, random_state=args.seed, objective=args.objective,
+                      camera=args.camera, missing=args.missing,
+                      outlier_threshold=args.outlier_threshold)
     check_ids_fit(out, problem.ids)
     result = solve(problem)
     write_result(out, result, report, {"input": str(args.input), "output": str(out)})
-    summary = result.report
-    worst = max(summary["rms_residual_per_view"])
-    print(f"{summary['points']} points from {summary['views']} views ({summary['setting']} "
-          f"projections, {summary['solver']}): stress {summary['stress']:.3g}, worst view RMS "
-          f"residual {worst:.3g}, {summary['unplaced']['count']} unplaced, "
-          f"{summary['runtime_s']:.2f} s")
-    for message in summary["warnings"]:
+    print(_reconstruct_summary(result.report))
+    for message in result.report["warnings"]:
         print(f"mpe3d: warning: {message}", file=sys.stderr)
     print(f"wrote {out}" + (f" and {report}" if report else ""))
     return 0
+
+
+def _reconstruct_summary(summary: dict) -> str:
+    where = f"{summary['points']} points from {summary['views']} views ({summary['setting']} "
+    if summary["objective"] == "stress":
+        worst = max(summary["rms_residual_per_view"])
+        return (where + f"projections, {summary['solver']}): stress {summary['stress']:.3g}, "
+                f"worst view RMS residual {worst:.3g}, {summary['unplaced']['count']} unplaced, "
+                f"{summary['runtime_s']:.2f} s")
+    worst = max(v for v in summary["rms_px_per_view"] if v is not None)
+    return (where + f"cameras, {summary['camera']} camera, bundle adjustment): reprojection RMS "
+            f"{summary['reprojection_rms_px']:.3g} px (worst view {worst:.3g} px), "
+            f"{summary['dropped']['count']} wrong matches dropped, "
+            f"{summary['unplaced']['count']} unplaced, {summary['runtime_s']:.2f} s")
+
+
+def _pair(text: str):
+    """``X,Y`` as two numbers, for --missing."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y (two numbers), got {text!r}") from None
+    return x, y
 
 
 def cmd_ui(args) -> int:
@@ -530,12 +551,25 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("input", metavar="INPUT", help="a .csv, .npz or .json file, or a folder of .npz")
     rec.add_argument("--out", required=True, metavar="CLOUD", help="output: .ply, .csv or .npy")
     rec.add_argument("--projections", metavar="FILE",
-                     help="known projections (.npy or .json, K matrices 2x3 or 3x3): the fixed setting")
-    rec.add_argument("--solver", default="refine", help="refine (default), factorize or sgd")
-    rec.add_argument("--loss", default="l2", choices=("l2", "huber", "soft_l1"),
-                     help="refine's loss: l2 (default), or huber or soft_l1 against outliers")
-    rec.add_argument("--report", metavar="FILE.json", help="write stress, per-view residuals, "
-                     "unplaced ids, projections and runtime as JSON")
+                     help="known cameras (.npy or .json, K matrices: 2x3 or 3x3 orthographic, "
+                     "or 3x4 pinhole): the fixed setting")
+    rec.add_argument("--objective", choices=("reprojection", "stress"),
+                     help="reprojection (bundle adjustment; the default for keypoints) or "
+                     "stress (paper Eq. 1; the default and only choice for distance matrices)")
+    rec.add_argument("--camera", default="auto", choices=("auto", "orthographic", "scaled", "perspective"),
+                     help="the camera model for reprojection (default auto: the pinhole camera "
+                     "when it fits clearly better than weak perspective)")
+    rec.add_argument("--missing", type=_pair, metavar="X,Y",
+                     help="drop observations at exactly X,Y (e.g. -1,-1: a tracker's 'not seen')")
+    rec.add_argument("--outlier-threshold", type=float, default=20.0, metavar="SIGMAS",
+                     help="reprojection: drop observations beyond this many robust sigmas as "
+                     "wrong matches (default 20; inf keeps all)")
+    rec.add_argument("--solver", default="refine", help="stress solver: refine (default), "
+                     "factorize or sgd")
+    rec.add_argument("--loss", default="l2", choices=("l2", "huber", "soft_l1", "cauchy"),
+                     help="l2 (default), or a robust loss: huber, soft_l1 (cauchy: reprojection only)")
+    rec.add_argument("--report", metavar="FILE.json", help="write per-view residuals (pixels "
+                     "for reprojection), cameras, dropped and unplaced ids and runtime as JSON")
     rec.add_argument("--seed", type=int, default=0, help="random state (default 0)")
     rec.set_defaults(func=cmd_reconstruct)
     ui = sub.add_parser("ui", help="start the MLflow UI on the tracking store, on 127.0.0.1")

@@ -1,23 +1,20 @@
 """Reconstruct your own data: matched 2D keypoints (or distance matrices) -> a 3D cloud.
 
-Inputs (checked hard at this boundary, every error one line naming the file,
-view and row):
+:func:`reconstruct` joins three parts kept apart: the file formats
+(:mod:`mpe3d.harness.formats`), the checks of what they hold (here, every
+error one line naming the file, view and row), and the solve:
 
-* CSV, long format with a header ``view,point,x,y``: one row per observation;
-* NPZ with ``view<k>_ids`` and ``view<k>_xy`` or ``view<k>_dist`` arrays, or
-  a folder with one ``<name>.npz`` per view holding ``ids`` and ``xy`` or
-  ``dist``;
-* JSON ``{"views": [{"ids": [...], "xy": [[x, y], ...]} | {"ids": [...], "dist": [[...]]}]}``.
-
-Known projections (the fixed setting) come as a ``.npy`` or ``.json`` of K
-matrices, 2x3 with orthonormal rows or 3x3 rotations, in view order.
+* views given as 2D coordinates (keypoints, in pixels) pose bundle
+  adjustment, the reprojection error over the points and each view's camera
+  (``objective="reprojection"``, :mod:`mpe3d.solvers.bundle`), with a camera
+  model (``camera``: orthographic, scaled, perspective, or auto), wrong
+  matches found and dropped;
+* distance matrices pose the 3DMPE stress (paper Eq. 1, ``objective="stress"``,
+  solved by ``solver``), which coordinates can also ask for.
 """
 
 from __future__ import annotations
 
-import csv
-import json
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,276 +23,63 @@ from typing import Any, Sequence
 import numpy as np
 
 from mpe3d import solvers
-from mpe3d.solvers import Observations, View
-from mpe3d.solvers.degenerate import collect_notes
+from mpe3d.solvers import Observations, View, bundle
+from mpe3d.solvers.cameras import CAMERAS
+from mpe3d.solvers.degenerate import check_geometry, collect_notes
 
-from ..errors import MpeError, first_line
-from .files import atomic_write, write_together
+from ..errors import MpeError
+from .formats import finite_array, read_projections, read_views
 from .identity import code_identity
 
-INPUT_FORMATS = (".csv", ".npz", ".json")
-OUTPUT_FORMATS = (".ply", ".csv", ".npy")
 SOLVERS = ("refine", "factorize", "sgd")
+OBJECTIVES = ("reprojection", "stress")
+STRESS_LOSSES = ("l2", "huber", "soft_l1")  # refine's
+CAMERA_CHOICES = ("auto",) + CAMERAS
+LIKELY_MISSING = ((-1.0, -1.0), (0.0, 0.0))  # what OpenCV and VGG files write for "not seen"
 SYMMETRY_TOL = 1e-6  # relative: distance matrices written as text lose a little
-ORTHONORMAL_TOL = 1e-6
 
 
 @dataclass
 class Result:
     """A reconstruction of user data: the cloud, its ids, and what to trust about it."""
 
-    points: np.ndarray  # (N, 3), in the frame of the given projections when fixed
+    points: np.ndarray  # (N, 3), in the frame of the given cameras when fixed
     ids: np.ndarray  # (N,) the input's point ids, in the order of ``points``
-    projections: np.ndarray  # (K, 2, 3), given or estimated
+    projections: np.ndarray  # (K, 2, 3) orthonormal rows, given or estimated
     report: dict[str, Any] = field(default_factory=dict)
 
 
-# -- reading -------------------------------------------------------------------
-
-def _finite(values: np.ndarray, where: str, what: str) -> np.ndarray:
-    try:
-        values = np.asarray(values)
-    except ValueError:  # ragged nested lists
-        raise MpeError(f"{where}: {what} rows differ in length") from None
-    if values.dtype.kind not in "iuf":  # text, booleans, complex, objects: never numbers here
-        raise MpeError(f"{where}: {what} holds a non-numeric value ({values.dtype})")
-    values = values.astype(np.float64)
-    bad = ~np.isfinite(values)
-    if bad.any():
-        row = int(np.argwhere(bad)[0][0])
-        raise MpeError(f"{where}: {what} row {row} is not a finite number")
-    return values
-
-
-def _check_header(path: Path) -> None:
-    """pandas renames a repeated column (``x``, ``x.1``) and reads the first: refuse instead."""
-    with open(path, newline="", encoding="utf-8") as handle:
-        header = [name.strip() for name in next(csv.reader(handle), [])]
-    for i, name in enumerate(header):
-        if not name and len(header) > 1:
-            raise MpeError(f"{path}: the header has no name for column {i + 1} "
-                           "(it must be view,point,x,y)")
-        if name in header[:i]:
-            raise MpeError(f"{path}: the header names column '{name}' twice "
-                           f"(columns {header.index(name) + 1} and {i + 1})")
-
-
-def _read_csv(path: Path) -> list[dict]:
-    import pandas as pd
-
-    try:
-        _check_header(path)
-        frame = pd.read_csv(path, dtype={"view": str, "point": str}, keep_default_na=False)
-    except pd.errors.EmptyDataError:
-        raise MpeError(f"{path}: empty file") from None
-    except (pd.errors.ParserError, UnicodeDecodeError, csv.Error) as exc:
-        raise MpeError(f"{path}: not a UTF-8 CSV file ({first_line(exc)})") from None
-    frame.columns = [str(c).strip() for c in frame.columns]
-    for column in ("view", "point", "x", "y"):
-        if column not in frame.columns:
-            raise MpeError(f"{path}: missing column '{column}' (the header must be view,point,x,y)")
-    if frame.empty:
-        raise MpeError(f"{path}: empty file (a header and no rows)")
-    for column in ("x", "y"):
-        numbers = pd.to_numeric(frame[column], errors="coerce").to_numpy(dtype=float)
-        bad = np.flatnonzero(~np.isfinite(numbers))
-        if len(bad):
-            row = int(bad[0])
-            raise MpeError(f"{path}: row {row + 2}: {column} is not a finite number "
-                           f"({str(frame[column].iloc[row])!r})")
-        frame[column] = numbers
-    twice = frame.duplicated(["view", "point"], keep="first")
-    if twice.any():
-        row = int(np.flatnonzero(twice)[0])
-        view, point = frame["view"].iloc[row], frame["point"].iloc[row]
-        first = int(np.flatnonzero((frame["view"] == view) & (frame["point"] == point))[0])
-        raise MpeError(f"{path}: row {row + 2}: point '{point}' appears twice in view '{view}' "
-                       f"(first at row {first + 2})")
-    views = []
-    for name, group in frame.groupby("view", sort=False):
-        views.append({"name": str(name), "ids": group["point"].to_numpy(),
-                      "xy": group[["x", "y"]].to_numpy()})
-    return views
-
-
-def _view_from_arrays(arrays, name: str, where: str) -> dict:
-    if "ids" not in arrays:
-        raise MpeError(f"{where}: missing array 'ids'")
-    has_xy, has_dist = "xy" in arrays, "dist" in arrays
-    if has_xy == has_dist:
-        raise MpeError(f"{where}: give exactly one of 'xy' and 'dist'")
-    view = {"name": name, "ids": np.asarray(arrays["ids"]).ravel()}
-    view["xy" if has_xy else "dist"] = np.asarray(arrays["xy" if has_xy else "dist"])
-    return view
-
-
-def _npz_members(path: Path) -> dict[str, np.ndarray]:
-    """Every array of an NPZ file, read now: a truncated member, a bad CRC or an
-    object array fails here, naming the member, not later inside a solver."""
-    import zipfile
-
-    from mpe3d.solvers.base import require_memory
-
-    try:
-        archive = np.load(path, allow_pickle=False)
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise MpeError(f"{path}: not an NPZ file ({first_line(exc)})") from None
-    members = {}
-    with archive:
-        for name in archive.files:
-            try:
-                require_memory(_declared_bytes(archive.zip, name), f"{path}: member '{name}'")
-                members[name] = archive[name]
-            except MpeError:
-                raise
-            except ValueError as exc:
-                reason = "holds Python objects, which are never unpickled" \
-                    if "allow_pickle" in str(exc) else first_line(exc)
-                raise MpeError(f"{path}: member '{name}' {reason}") from None
-            except MemoryError:
-                raise MpeError(f"{path}: member '{name}' does not fit in memory") from None
-            except Exception as exc:  # noqa: BLE001 - zlib, zipfile, EOF: a damaged archive
-                raise MpeError(f"{path}: member '{name}' cannot be read (damaged or truncated: "
-                               f"{type(exc).__name__})") from None
-    return members
-
-
-def _declared_bytes(archive, name: str) -> int:
-    """The size a member's .npy header declares, read before its data."""
-    try:
-        with archive.open(name + ".npy") as handle:
-            read = {(1, 0): np.lib.format.read_array_header_1_0,
-                    (2, 0): np.lib.format.read_array_header_2_0}[np.lib.format.read_magic(handle)]
-            shape, _, dtype = read(handle)
-    except Exception:  # noqa: BLE001 - reading the member itself will say what is wrong
-        return 0
-    return int(np.prod(shape, dtype=np.float64) * dtype.itemsize)
-
-
-def _read_npz(path: Path) -> list[dict]:
-    data = _npz_members(path)
-    names = sorted({key.split("_", 1)[0] for key in data if "_" in key},
-                   key=lambda v: (len(v), v))
-    if not names:
-        if set(data) & {"ids", "xy", "dist"}:  # one view per file, inside a folder
-            return [_view_from_arrays(data, path.stem, str(path))]
-        raise MpeError(f"{path}: empty file (no view<k>_ids arrays)")
-    return [_view_from_arrays({key.split("_", 1)[1]: data[key] for key in data
-                               if key.startswith(f"{name}_")}, name, f"{path}: {name}")
-            for name in names]
-
-
-def _read_folder(path: Path) -> list[dict]:
-    files = sorted(path.glob("*.npz"))
-    if not files:
-        raise MpeError(f"{path}: a folder input needs one .npz file per view (ids, and xy or dist)")
-    views = []
-    for file in files:
-        views += _read_npz(file)
-    return views
-
-
-def _json_ids(value, where: str) -> list:
-    if not isinstance(value, list) or not all(
-            isinstance(v, (int, str)) and not isinstance(v, bool) for v in value):
-        raise MpeError(f"{where}: ids must be a list of integers or strings")
-    return value
-
-
-def _json_matrix(value, where: str, what: str) -> np.ndarray:
-    """A list of equal-length rows of numbers (``null`` becomes NaN, caught later)."""
-    if not isinstance(value, list):
-        raise MpeError(f"{where}: {what} must be a list of rows")
-    for row_index, row in enumerate(value):
-        if not isinstance(row, list):
-            raise MpeError(f"{where}: {what} row {row_index} is not a list")
-        if len(row) != len(value[0]):
-            raise MpeError(f"{where}: {what} row {row_index} has {len(row)} entries, "
-                           f"row 0 has {len(value[0])}")
-        for item in row:
-            if isinstance(item, bool) or not isinstance(item, (int, float, type(None))):
-                kind = "true/false" if isinstance(item, bool) else type(item).__name__
-                raise MpeError(f"{where}: {what} holds a non-numeric value (row {row_index}: {kind})")
-    try:
-        return np.array(value, dtype=np.float64)
-    except OverflowError:
-        raise MpeError(f"{where}: {what} holds a number too large for a float") from None
-
-
-def _read_json(path: Path) -> list[dict]:
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise MpeError(f"{path}: not a UTF-8 text file") from None
-    if not text.strip():
-        raise MpeError(f"{path}: empty file")
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise MpeError(f"{path}: malformed JSON at line {exc.lineno}: {exc.msg}") from None
-    except RecursionError:
-        raise MpeError(f"{path}: JSON nested too deeply") from None
-    if not isinstance(data, dict) or not isinstance(data.get("views"), list):
-        raise MpeError(f"{path}: expected an object with a list 'views'")
-    views = []
-    for k, item in enumerate(data["views"]):
-        where = f"{path}: view '{k}'"
-        if not isinstance(item, dict):
-            raise MpeError(f"{where}: expected an object with 'ids' and 'xy' or 'dist'")
-        arrays = {key: _json_matrix(item[key], where, key) for key in ("xy", "dist") if key in item}
-        if "ids" in item:
-            arrays["ids"] = np.asarray(_json_ids(item["ids"], where), dtype=object).astype(str)
-        views.append(_view_from_arrays(arrays, str(k), where))
-    return views
-
-
-def read_views(path: str | Path) -> list[dict]:
-    """The views of an input file as dicts ``{name, ids, xy | dist}``, not yet checked."""
-    path = Path(path)
-    if path.is_dir():
-        return _read_folder(path)
-    if not path.exists():
-        raise MpeError(f"{path}: no such file")
-    if not path.is_file():
-        raise MpeError(f"{path}: not a regular file")
-    readers = {".csv": _read_csv, ".npz": _read_npz, ".json": _read_json}
-    reader = readers.get(path.suffix.lower())
-    if reader is None:
-        raise MpeError(f"{path}: unknown input format '{path.suffix}' (expected .csv, .npz, "
-                       ".json, or a folder of .npz files)")
-    if path.stat().st_size == 0:
-        raise MpeError(f"{path}: empty file")
-    return reader(path)
-
-
-def read_projections(path: str | Path) -> np.ndarray:
-    """``(K, 2, 3)`` projections from a .npy or .json file of 2x3 or 3x3 matrices."""
-    path = Path(path)
-    if path.suffix.lower() not in (".npy", ".json"):
-        raise MpeError(f"{path}: unknown projections format '{path.suffix}' (expected .npy or .json)")
-    try:
-        if path.stat().st_size == 0:
-            raise MpeError(f"{path}: empty file")
-        data = np.load(path, allow_pickle=False) if path.suffix.lower() == ".npy" \
-            else json.loads(path.read_text())
-    except OSError as exc:
-        raise MpeError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    except (ValueError, EOFError) as exc:
-        raise MpeError(f"{path}: not a {path.suffix} array file ({first_line(exc)})") from None
-    except RecursionError:
-        raise MpeError(f"{path}: JSON nested too deeply") from None
-    mats = []
-    for k, m in enumerate(data if isinstance(data, list) or np.ndim(data) == 3 else [data]):
-        m = _finite(m, f"{path}: projection {k}", "matrix")
-        if m.shape not in ((2, 3), (3, 3)):
-            raise MpeError(f"{path}: projection {k} is {'x'.join(map(str, m.shape))}, "
-                           "expected 2x3 (orthonormal rows) or 3x3 (a rotation)")
-        error = np.abs(m @ m.T - np.eye(len(m))).max()
-        if error > ORTHONORMAL_TOL:
-            raise MpeError(f"{path}: projection {k}: rows are not orthonormal "
-                           f"(largest |P P^T - I| entry {error:.2g})")
-        mats.append(m[:2])
-    return np.stack(mats)
+def drop_missing(views: Sequence[dict], missing=None, source: str = "input"):
+    """The views without the observations at exactly ``missing`` (x, y), and a
+    note per view where observations sit exactly at (-1, -1) or (0, 0), the
+    marks that tracking files use for "not seen" (when ``missing`` is None)."""
+    notes, out = [], []
+    for k, view in enumerate(views):
+        if "xy" not in view:
+            out.append(view)
+            continue
+        xy = np.asarray(view["xy"])
+        name = view.get("name", k)
+        if xy.ndim != 2 or xy.shape != (len(view["ids"]), 2) or xy.dtype.kind not in "iuf":
+            out.append(view)  # observations_from says what is wrong with it
+            continue
+        if missing is not None:
+            keep = ~np.all(xy == np.asarray(missing, dtype=float), axis=1)
+            out.append({**view, "ids": np.asarray(view["ids"])[keep], "xy": xy[keep]})
+            continue
+        out.append(view)
+        for mark in LIKELY_MISSING:
+            hit = np.all(xy == mark, axis=1)
+            # (0, 0) is a pixel like any other, unless two points of one view sit on it
+            if np.count_nonzero(hit) > (1 if mark == (0.0, 0.0) else 0):
+                ids = np.asarray(view["ids"])[hit]
+                shown = ", ".join(map(str, ids[:10])) + (f", ... ({len(ids)} in all)"
+                                                         if len(ids) > 10 else "")
+                x, y = (int(v) for v in mark)
+                notes.append(f"{source}: view '{name}': {len(ids)} observations at exactly "
+                             f"({x}, {y}), likely missing markers (ids {shown}); "
+                             f"missing=({x}, {y}) (--missing={x},{y}) drops them")
+    return out, notes
 
 
 # -- checking ------------------------------------------------------------------
@@ -306,7 +90,7 @@ def _check_dist(D: np.ndarray, n: int, where: str) -> np.ndarray:
     if D.shape[0] != n:
         raise MpeError(f"{where}: dist is {D.shape[0]}x{D.shape[0]} but ids has {n} entries; "
                        "they must match")
-    D = _finite(D, where, "dist")
+    D = finite_array(D, where, "dist")
     scale = max(float(np.abs(D).max()), 1e-300)
     asymmetry = float(np.abs(D - D.T).max())
     if asymmetry > SYMMETRY_TOL * scale:
@@ -347,7 +131,7 @@ def observations_from(views: Sequence[dict], projections=None, source: str = "in
         rows = index[start:start + len(ids)]
         start += len(ids)
         if "xy" in view:
-            xy = _finite(view["xy"], where, "xy")
+            xy = finite_array(view["xy"], where, "xy")
             if xy.shape != (len(ids), 2):
                 raise MpeError(f"{where}: xy is {'x'.join(map(str, xy.shape))}, expected "
                                f"{len(ids)}x2 (one row per id)")
@@ -379,6 +163,7 @@ def _overflows(label: str) -> bool:
         return False
 
 
+
 # -- solving -------------------------------------------------------------------
 
 @dataclass
@@ -390,6 +175,12 @@ class Problem:
     solver: str
     loss: str
     random_state: Any
+    objective: str = "stress"
+    camera: str = "auto"
+    cameras: np.ndarray | None = None  # known: (K, 2, 3) rows or (K, 3, 4) pinhole matrices
+    outlier_threshold: float = bundle.OUTLIER_THRESHOLD
+    view_names: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
 
 
 def _check_random_state(random_state) -> None:
@@ -401,13 +192,29 @@ def _check_random_state(random_state) -> None:
                        f"got {random_state!r}")
 
 
-def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
-            loss: str = "l2", random_state=0) -> Problem:
-    """Read and check every input of :func:`reconstruct` without solving anything."""
+def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
     if solver not in SOLVERS:
         raise MpeError(f"solver: '{solver}' is not one of {', '.join(SOLVERS)}")
-    if loss != "l2" and solver != "refine":
-        raise MpeError(f"loss='{loss}' needs solver='refine' (got solver='{solver}')")
+    if objective is not None and objective not in OBJECTIVES:
+        raise MpeError(f"objective: '{objective}' is not one of {', '.join(OBJECTIVES)}")
+    if camera not in CAMERA_CHOICES:
+        raise MpeError(f"camera: '{camera}' is not one of {', '.join(CAMERA_CHOICES)}")
+    if loss not in bundle.LOSSES:
+        raise MpeError(f"loss: '{loss}' is not one of {', '.join(bundle.LOSSES)}")
+    if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)) \
+            or not outlier_threshold > 0:
+        raise MpeError(f"outlier_threshold: expected a number > 0 (inf keeps every observation), "
+                       f"got {outlier_threshold!r}")
+    if missing is not None and (np.shape(missing) != (2,) or not np.all(np.isfinite(missing))):
+        raise MpeError(f"missing: expected two finite numbers x, y, got {missing!r}")
+
+
+def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
+            loss: str = "l2", random_state=0, objective: str | None = None,
+            camera: str = "auto", missing=None,
+            outlier_threshold: float = bundle.OUTLIER_THRESHOLD) -> Problem:
+    """Read and check every input of :func:`reconstruct` without solving anything."""
+    _check_choices(solver, loss, objective, camera, outlier_threshold, missing)
     _check_random_state(random_state)
     source = str(views) if isinstance(views, (str, Path)) else "views"
     if isinstance(views, (str, Path)):
@@ -416,41 +223,110 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
     if isinstance(projections, (str, Path)):
         projections_source, projections = str(projections), read_projections(projections)
     elif projections is not None:
-        projections = np.asarray(projections, dtype=float)[:, :2]
-    obs, ids = observations_from(views, projections, source, projections_source)
-    return Problem(obs, ids, solver, loss, random_state)
+        projections = np.asarray(projections, dtype=float)
+        projections = projections if projections.shape[1:] == (3, 4) else projections[:, :2]
+    views, notes = drop_missing(views, missing, source)
+    coordinates = all("xy" in view for view in views)
+    if objective is None:
+        objective = "reprojection" if coordinates else "stress"
+    if objective == "reprojection" and not coordinates:
+        raise MpeError(f"{source}: objective='reprojection' needs 2D coordinates (xy) in every "
+                       "view; distance matrices allow objective='stress' only")
+    if objective == "stress" and loss != "l2" and solver != "refine":
+        raise MpeError(f"loss='{loss}' needs solver='refine' (got solver='{solver}')")
+    if objective == "stress" and loss not in STRESS_LOSSES:
+        raise MpeError(f"loss='{loss}' is for objective='reprojection'; the stress takes "
+                       f"{', '.join(STRESS_LOSSES)}")
+    pinhole = projections is not None and projections.shape[1:] == (3, 4)
+    if pinhole and objective == "stress":
+        raise MpeError(f"{projections_source}: 3x4 pinhole cameras need objective='reprojection'; "
+                       "the stress takes orthographic projections (2x3 or 3x3)")
+    obs, ids = observations_from(views, None if pinhole else projections, source,
+                                 projections_source)
+    if pinhole and len(projections) != obs.n_views:
+        raise MpeError(f"{projections_source}: {len(projections)} matrices for {obs.n_views} views")
+    names = [str(view.get("name", k)) for k, view in enumerate(views)]
+    return Problem(obs, ids, solver, loss, random_state, objective, camera, projections,
+                   float(outlier_threshold), names, notes)
 
 
 def solve(problem: Problem) -> Result:
-    """Solve a prepared problem (paper Eq. 1) and report on the result."""
-    options = {"loss": problem.loss} if problem.solver == "refine" else {}
+    """Solve a prepared problem and report on the result."""
     start = time.perf_counter()
-    with collect_notes() as notes:  # notes about the input go in the report
-        rec = solvers.solve(problem.solver, problem.observations,
-                            random_state=problem.random_state, **options)
+    with collect_notes(labels=problem.ids) as notes:  # notes about the input go in the report
+        if problem.objective == "reprojection":
+            fit = _solve_reprojection(problem)
+        else:
+            options = {"loss": problem.loss} if problem.solver == "refine" else {}
+            fit = solvers.solve(problem.solver, problem.observations,
+                                random_state=problem.random_state, **options)
     runtime = time.perf_counter() - start
-    report = _report(problem.observations, rec, problem.ids, problem.solver, problem.loss, runtime)
-    report["warnings"] = notes
-    return Result(points=rec.points, ids=problem.ids, projections=np.asarray(rec.projections),
+    if problem.objective == "reprojection":
+        report = _reprojection_report(problem, fit, runtime)
+        projections = fit.cameras.current_rotations()[:, :2] if fit.cameras.model != "matrix" \
+            else problem.cameras
+        return Result(points=fit.points, ids=problem.ids, projections=np.asarray(projections),
+                      report={**report, "warnings": problem.notes + notes + _stop_notes(fit)})
+    report = _report(problem.observations, fit, problem.ids, problem.solver, problem.loss, runtime)
+    report["warnings"] = problem.notes + notes + _stop_notes(fit)
+    return Result(points=fit.points, ids=problem.ids, projections=np.asarray(fit.projections),
                   report=report)
 
 
+def _solve_reprojection(problem: Problem):
+    check_geometry(problem.observations)  # one line for what cannot determine a shape
+    tracks = bundle.Tracks.from_observations(problem.observations)
+    if problem.cameras is not None:
+        return bundle.known_cameras(tracks, problem.cameras, loss=problem.loss,
+                                    outlier_threshold=problem.outlier_threshold)
+    return bundle.bundle_adjust(tracks, problem.camera, loss=problem.loss,
+                                outlier_threshold=problem.outlier_threshold)
+
+
+def _stop_notes(fit) -> list[str]:
+    """A line when the solve stopped at its iteration cap instead of converging."""
+    converged = getattr(fit, "converged", None)
+    if converged is None:  # a stress solver: its termination says
+        text = str(fit.termination).lower()
+        converged = not ("limit" in text or "max_iter" in text)
+    return [] if converged else [f"the solve did not converge ({fit.termination}): the cloud "
+                                 "may be short of the optimum"]
+
+
 def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
-                loss: str = "l2", random_state=0) -> Result:
-    """Rebuild a 3D cloud from user views (paper Eq. 1, fixed or variable setting).
+                loss: str = "l2", random_state=0, objective: str | None = None,
+                camera: str = "auto", missing=None,
+                outlier_threshold: float = bundle.OUTLIER_THRESHOLD) -> Result:
+    """Rebuild a 3D cloud from user views.
 
     Parameters
     ----------
     views : a path (CSV, NPZ, JSON, folder) or a list of ``{"ids", "xy" | "dist"}`` dicts
         What each view saw: its point ids and their 2D coordinates or distance matrix.
-    projections : None, a path, or an array of K 2x3 / 3x3 matrices, default None
-        Known projections (fixed setting); None estimates them (variable setting).
+    projections : None, a path, or an array of K 2x3 / 3x3 / 3x4 matrices, default None
+        Known cameras (the fixed setting): orthographic rows or rotations, or
+        3x4 pinhole matrices (reprojection only). None estimates them.
     solver : {"refine", "factorize", "sgd"}, default "refine"
-    loss : {"l2", "huber"}, default "l2"
-        refine's loss; huber tempers outlying distances or wrong matches.
+        The stress solver (``objective="stress"``).
+    loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
+        rho of the squared residual (reprojection, scale 1 px), or refine's loss
+        of the stress (l2, huber, soft_l1).
     random_state : int >= 0 or Generator, default 0
+    objective : {None, "reprojection", "stress"}, default None
+        None: the reprojection error for coordinates (bundle adjustment), the
+        3DMPE stress (paper Eq. 1) for distance matrices.
+    camera : {"auto", "orthographic", "scaled", "perspective"}, default "auto"
+        The camera model of the reprojection objective; "auto" fits the scaled
+        (weak-perspective) and the pinhole camera and keeps the pinhole when it
+        explains the keypoints clearly better.
+    missing : None or (x, y), default None
+        Observations at exactly (x, y) are markers for "not seen" and dropped.
+    outlier_threshold : float, default 20
+        Reprojection: observations beyond this many robust sigmas are taken for
+        wrong matches and dropped (listed in the report); ``inf`` keeps all.
     """
-    return solve(prepare(views, projections, solver, loss, random_state))
+    return solve(prepare(views, projections, solver, loss, random_state, objective, camera,
+                         missing, outlier_threshold))
 
 
 def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, runtime: float) -> dict:
@@ -461,7 +337,7 @@ def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, run
     seen = obs.visibility().sum(axis=0)
     unplaced = ids[seen < 2]
     return {
-        "points": int(obs.n_points), "views": int(obs.n_views),
+        "points": int(obs.n_points), "views": int(obs.n_views), "objective": "stress",
         "setting": "fixed" if obs.fixed else "variable", "solver": solver, "loss": loss,
         "stress": float(stress.value(rec.points, np.asarray(rec.projections))),
         "stress_pairs": "sparse (k-NN and random pairs per view)" if stress.sparse else "all",
@@ -473,98 +349,38 @@ def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, run
     }
 
 
-# -- writing -------------------------------------------------------------------
-
-def _ply(path: Path, points: np.ndarray, ids: np.ndarray) -> None:
-    """Binary PLY with an ``id`` vertex property: an int, or for text ids a list of
-    UTF-8 bytes padded with NULs to one length (so readers that expect equal
-    list lengths, like trimesh's, can load it)."""
-    n = len(points)
-    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
-    if ids.dtype.kind in "iu":
-        id_property, values = "property int id", [ids.astype("<i4")]
-        fields.append(("id", "<i4"))
-    else:
-        raw = np.char.encode(ids.astype(str), "utf-8")
-        width = max(1, raw.dtype.itemsize)
-        id_property, values = "property list uchar uchar id", [np.full(n, width, "u1"), raw]
-        fields += [("length", "u1"), ("id", f"S{width}")]
-    record = np.empty(n, dtype=fields)
-    for name, column in zip(record.dtype.names, [*points.T, *values]):
-        record[name] = column
-    header = ("ply\nformat binary_little_endian 1.0\ncomment mpe3d reconstruction\n"
-              f"element vertex {n}\nproperty double x\nproperty double y\nproperty double z\n"
-              f"{id_property}\nend_header\n").encode()
-    with open(path, "wb") as handle:
-        handle.write(header)
-        handle.write(record.tobytes())
-
-
-def check_output(path: str | Path, flag: str = "--out", formats=OUTPUT_FORMATS) -> Path:
-    """``path`` if a file of one of ``formats`` can be written there: checked by
-    creating (and removing) a file beside it, before any work is done."""
-    path = Path(path)
-    if path.is_dir():
-        raise MpeError(f"{flag} {path}: is a folder, not a file")
-    if path.suffix.lower() not in formats:
-        raise MpeError(f"{flag} {path}: unknown output format '{path.suffix}' "
-                       f"(expected {', '.join(formats)})")
-    if path.exists() and not path.is_file():
-        raise MpeError(f"{flag} {path}: not a regular file")
-    if not path.parent.is_dir():
-        raise MpeError(f"{flag} {path}: folder {path.parent} does not exist")
-    try:
-        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
-            pass
-    except OSError as exc:
-        raise MpeError(f"{flag} {path}: cannot write in {path.parent} "
-                       f"({exc.strerror or exc})") from None
-    return path
+def _reprojection_report(problem: Problem, fit, runtime: float) -> dict:
+    """Reprojection RMS per view in pixels, the cameras (and as ``projections``
+    their rotations' first rows, or the given 3x4 matrices), the dropped
+    observations."""
+    obs, ids, names = problem.observations, problem.ids, problem.view_names
+    tracks = bundle.Tracks.from_observations(obs)
+    length2 = np.sum(fit.residuals ** 2, axis=1)
+    kept = ~fit.dropped
+    per_view = [float(np.sqrt(np.mean(length2[(tracks.view == k) & kept])))
+                if np.any((tracks.view == k) & kept) else None for k in range(obs.n_views)]
+    dropped = [{"view": names[k], "point": _plain(ids[i])}
+               for k, i in zip(tracks.view[fit.dropped], tracks.point[fit.dropped])]
+    unplaced = ids[~fit.info["placed"]]
+    cameras = [{"view": name, **camera} for name, camera in zip(names, fit.cameras.matrices())]
+    return {
+        "points": int(obs.n_points), "views": int(obs.n_views), "objective": "reprojection",
+        "setting": "fixed" if problem.cameras is not None else "variable",
+        "camera": fit.camera, "loss": problem.loss,
+        "reprojection_rms_px": fit.rms(), "reprojection_rms_px_all": fit.rms(np.ones_like(kept)),
+        "rms_px_per_view": per_view,
+        "rms_px_by_camera": {model: float(v) for model, v in fit.info["rms_by_camera"].items()},
+        "affine_rms_px": None if not np.isfinite(fit.affine_rms) else float(fit.affine_rms),
+        "cameras": cameras,
+        "projections": (fit.cameras.current_rotations()[:, :2] if fit.cameras.model != "matrix"
+                        else problem.cameras).tolist(),
+        "dropped": {"count": len(dropped), "threshold_sigmas": problem.outlier_threshold,
+                    "observations": dropped},
+        "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist()},
+        "converged": bool(fit.converged), "iterations": int(fit.iterations),
+        "termination": fit.termination, "runtime_s": runtime, "code": code_identity(),
+    }
 
 
-def check_ids_fit(path: Path, ids: np.ndarray) -> None:
-    """PLY keeps ids as a 32-bit int or a list of at most 255 bytes: say so before solving."""
-    if Path(path).suffix.lower() != ".ply" or not len(ids):
-        return
-    if ids.dtype.kind in "iu" and (ids.min() < -2 ** 31 or ids.max() >= 2 ** 31):
-        raise MpeError(f"{path}: point ids beyond 2**31 do not fit a PLY int; "
-                       "write .csv or .npy instead")
-    if ids.dtype.kind not in "iu" and max(len(str(i).encode()) for i in ids) > 255:
-        raise MpeError(f"{path}: point ids longer than 255 bytes do not fit a PLY list; "
-                       "write .csv or .npy instead")
-
-
-def _cloud_writer(path: Path, points: np.ndarray, ids: np.ndarray):
-    """A function writing the cloud, by ``path``'s extension, to the file it is given."""
-    suffix = path.suffix.lower()
-    if suffix == ".ply":
-        return lambda temp: _ply(temp, points, ids)
-    if suffix == ".csv":
-        import pandas as pd
-
-        frame = pd.DataFrame({"id": ids, "x": points[:, 0], "y": points[:, 1], "z": points[:, 2]})
-        return lambda temp: frame.to_csv(temp, index=False, float_format="%.17g")
-    record = np.empty(len(points), dtype=[("id", ids.dtype), ("x", "<f8"), ("y", "<f8"), ("z", "<f8")])
-    record["id"], record["x"], record["y"], record["z"] = ids, *points.T
-
-    def save(temp):
-        with open(temp, "wb") as handle:  # np.save(path) would append .npy to the temp name
-            np.save(handle, record)
-    return save
-
-
-def write_cloud(path: str | Path, points: np.ndarray, ids: np.ndarray) -> Path:
-    """The cloud as PLY, CSV or NPY (by extension), ids kept, written atomically."""
-    path = check_output(path)
-    check_ids_fit(path, ids)
-    atomic_write(path, _cloud_writer(path, points, ids))
-    return path
-
-
-def write_result(out: Path, result: Result, report: Path | None = None, extra: dict | None = None) -> None:
-    """The cloud and, if asked, its JSON report: both, or neither."""
-    files = [(out, _cloud_writer(out, result.points, result.ids))]
-    if report is not None:
-        text = json.dumps({**(extra or {}), **result.report}, indent=1)
-        files.append((report, lambda temp: Path(temp).write_text(text)))
-    write_together(files)
+def _plain(value):
+    return value.item() if hasattr(value, "item") else value

@@ -134,7 +134,8 @@ def metric_upgrade_pd(L: np.ndarray) -> np.ndarray:
     linear = _linear_upgrade(L)
     if linear is not None:
         starts.insert(0, linear[rows, cols])
-    best = min((least_squares(residual, a0, method="lm", xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    method = "lm" if 2 * len(L) + 1 >= 6 else "trf"  # lm needs as many residuals as unknowns
+    best = min((least_squares(residual, a0, method=method, xtol=1e-15, ftol=1e-15, gtol=1e-15)
                 for a0 in starts), key=lambda r: r.cost)
     A = np.zeros((3, 3))
     A[rows, cols] = best.x
@@ -233,6 +234,9 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
             fits[model] = (_orthographic if model == "orthographic" else _perspective)(
                 *fit[:2], tracks.subset(used), principal_point, shared_focal, solve)
     rms = {model: _rms_of(f, tracks, used) for model, f in fits.items()}
+    if not np.isfinite(rms[camera if camera != "auto" else "scaled"]):
+        raise MpeError("the keypoints do not determine a 3D shape: no start gives finite "
+                       "cameras (a planar scene, or too few points shared by the views?)")
     if camera == "auto":
         camera = "perspective" if rms["perspective"] < AUTO_RATIO * rms["scaled"] else "scaled"
     _say_if_the_data_disagree(camera, rms)
@@ -559,7 +563,7 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
         return r, (cost if np.isfinite(cost) else np.inf), weight
 
     r, cost, weight = evaluate(X, cameras)
-    if not np.isfinite(cost):  # a point behind a camera: not a start
+    if not np.isfinite(cost) or not np.all(np.isfinite(X)):  # e.g. a point behind a camera
         return X, cameras, np.array([np.inf]), False
     history, converged, nu = [_rms(r)], False, 2.0
     for iteration in range(1, max_iter + 1):
@@ -641,6 +645,8 @@ def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
     Ug = np.einsum("nij,nj->ni", U_inv, g_x)
     rhs = g_c - np.bincount(structure.cols.ravel(), minlength=structure.size,
                             weights=np.einsum("tic,ti->tc", W, Ug[point]).ravel())
+    if not (np.all(np.isfinite(S)) and np.all(np.isfinite(rhs))):
+        return None
     try:
         dc = -cho_solve(cho_factor(S), rhs) if len(rhs) else rhs  # known cameras: none
     except np.linalg.LinAlgError:

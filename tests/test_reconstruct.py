@@ -11,7 +11,9 @@ from mpe3d.harness.config import make_config
 from mpe3d.errors import MpeError
 from mpe3d.harness.metrics import roa
 from mpe3d.harness.observe import build_scene, observe, seed_streams
-from mpe3d.harness.reconstruct import atomic_write, reconstruct, write_cloud
+from mpe3d.harness.files import atomic_write
+from mpe3d.harness.formats import write_cloud
+from mpe3d.harness.reconstruct import reconstruct
 
 from .helpers import run_cli
 
@@ -66,7 +68,10 @@ def test_round_trip_through_the_cli(tmp_path, fmt, setting):
     assert roa(np.asarray(cloud.vertices), sc.points[ids]) < 1e-8
     report = json.loads((tmp_path / "r.json").read_text())
     assert report["setting"] == setting and report["unplaced"]["count"] == 0
-    assert len(report["rms_residual_per_view"]) == 5 and max(report["rms_residual_per_view"]) < 1e-8
+    # keypoints pose bundle adjustment (residuals in pixels), distances the stress
+    residuals = "rms_residual_per_view" if "dist" in fmt else "rms_px_per_view"
+    assert report["objective"] == ("stress" if "dist" in fmt else "reprojection")
+    assert len(report[residuals]) == 5 and max(report[residuals]) < 1e-8
     assert np.asarray(report["projections"]).shape == (5, 2, 3) and report["runtime_s"] > 0
 
 
@@ -76,7 +81,8 @@ def test_the_installed_command_and_text_ids(tmp_path):
     pd.DataFrame(rows, columns=["view", "point", "x", "y"]).to_csv(tmp_path / "kp.csv", index=False)
     done = run_cli("reconstruct", "kp.csv", "--out", "cloud.ply", cwd=tmp_path)
     assert done.returncode == 0, done.stderr
-    assert "200 points from 5 views (variable projections, refine)" in done.stdout
+    assert "200 points from 5 views (variable cameras, scaled camera, bundle adjustment)" \
+        in done.stdout
     raw = trimesh.load(tmp_path / "cloud.ply").metadata["_ply_raw"]["vertex"]["data"]["id"]
     labels = [bytes(chars).rstrip(b"\0").decode() for chars in raw["f1"]]  # (count, bytes) pairs
     order = [int(label.split("-")[1]) for label in labels]

@@ -31,7 +31,7 @@ except PackageNotFoundError:  # running from a checkout that was never installed
 
 _PUBLIC = {
     "reconstruct": "mpe3d.harness.reconstruct",
-    "write_cloud": "mpe3d.harness.reconstruct",
+    "write_cloud": "mpe3d.harness.formats",
     "solve": "mpe3d.solvers",
     "View": "mpe3d.solvers",
     "Observations": "mpe3d.solvers",
