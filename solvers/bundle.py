@@ -31,7 +31,6 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.optimize import least_squares
 from scipy.linalg import cho_factor, cho_solve
 from scipy.sparse import csr_matrix
 
@@ -40,7 +39,7 @@ from mpe3d.errors import MpeError
 from .base import Observations
 from .cameras import CAMERAS, MATRIX, Cameras, affine_cameras, known_matrices
 from .degenerate import warn
-from .factorize import _stacked, affine_als
+from .factorize import _stacked, affine_als, metric_upgrade_pd
 from .stress import project_rows
 
 LOSSES = ("l2", "huber", "soft_l1", "cauchy")
@@ -109,63 +108,6 @@ class BundleResult:
 
 
 # -- the start -------------------------------------------------------------------
-
-def metric_upgrade_pd(L: np.ndarray) -> np.ndarray:
-    """A (3x3, invertible) with L_k^T A A^T L_k = s_k^2 I as nearly as possible.
-
-    Weak perspective: each view's two camera rows (columns of L_k) are
-    orthogonal and of equal length under M = A A^T. A is lower-triangular and
-    fitted by least squares, so M is positive definite by construction, unlike
-    the linear solution, which noise or a perspective camera can make
-    indefinite (and the cloud then blows up along the clipped direction).
-    """
-    l1, l2 = L[:, :, 0], L[:, :, 1]
-    rows, cols = np.tril_indices(3)
-
-    def residual(a):
-        A = np.zeros((3, 3))
-        A[rows, cols] = a
-        u, v = l1 @ A, l2 @ A
-        p, q, r = np.sum(u * u, 1), np.sum(v * v, 1), np.sum(u * v, 1)
-        total = p + q + 1e-300
-        return np.concatenate([(p - q) / total, 2 * r / total, [np.log(np.abs(np.diag(A))).sum()]])
-
-    starts = [np.eye(3)[rows, cols]]
-    linear = _linear_upgrade(L)
-    if linear is not None:
-        starts.insert(0, linear[rows, cols])
-    method = "lm" if 2 * len(L) + 1 >= 6 else "trf"  # lm needs as many residuals as unknowns
-    best = min((least_squares(residual, a0, method=method, xtol=1e-15, ftol=1e-15, gtol=1e-15)
-                for a0 in starts), key=lambda r: r.cost)
-    A = np.zeros((3, 3))
-    A[rows, cols] = best.x
-    return A
-
-
-def _linear_upgrade(L: np.ndarray) -> np.ndarray | None:
-    """The Cholesky factor of the linear least-squares M, when it is positive definite."""
-    iu = np.triu_indices(3)
-    halve = np.where(iu[0] == iu[1], 2.0, 1.0)
-
-    def coefficients(a, b):
-        outer = np.einsum("ki,kj->kij", a, b)
-        return (outer + outer.transpose(0, 2, 1))[:, iu[0], iu[1]] / halve
-
-    l1, l2 = L[:, :, 0], L[:, :, 1]
-    # equal lengths and orthogonal rows, and the mean squared length fixed to 1
-    system = np.concatenate([coefficients(l1, l1) - coefficients(l2, l2), coefficients(l1, l2),
-                             (coefficients(l1, l1) + coefficients(l2, l2)).mean(0, keepdims=True)])
-    target = np.zeros(len(system))
-    target[-1] = 2.0
-    m = np.linalg.lstsq(system, target, rcond=None)[0]
-    M = np.zeros((3, 3))
-    M[iu] = m
-    M = M + M.T - np.diag(np.diag(M))
-    try:
-        return np.linalg.cholesky(M)
-    except np.linalg.LinAlgError:
-        return None
-
 
 def weak_perspective_start(tracks: Tracks, sweeps: int = 20, tol: float = 1e-10):
     """X, orthonormal rows P (K, 2, 3), scales s and translations t from the

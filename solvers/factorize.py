@@ -22,6 +22,7 @@ point; no N x N matrix is formed.
 from __future__ import annotations
 
 import numpy as np
+from scipy.optimize import least_squares
 
 from .base import Interval, Observations, Reconstruction, register
 from .degenerate import check_geometry, warn
@@ -225,7 +226,10 @@ def metric_upgrade(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray
 
     Finds the symmetric M with l1^T M l1 = l2^T M l2 = 1 and l1^T M l2 = 0 for
     every view (linear least squares in its 6 entries), writes M = A A^T and
-    returns X A^-T and the projections A^T L_k, orthonormalised.
+    returns X A^-T and the projections A^T L_k, orthonormalised. Noise can make
+    the linear M indefinite; then A comes from :func:`metric_upgrade_pd`,
+    positive definite by construction, instead of clipping M's negative
+    eigenvalues (which stretched the cloud to 10^6 times its size).
     """
     iu = np.triu_indices(3)
     halve = np.where(iu[0] == iu[1], 2.0, 1.0)
@@ -245,13 +249,101 @@ def metric_upgrade(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray
     M[iu] = m
     M = M + M.T - np.diag(np.diag(M))
     values, vectors = np.linalg.eigh(M)
-    if values[0] <= 0:
-        warn("the metric upgrade is not positive definite; clipped (noisy views?)")
-        values = np.maximum(values, 1e-12 * max(values[-1], 1e-300))
-    A = vectors * np.sqrt(values)
+    if values[0] > 0:
+        A = vectors * np.sqrt(values)
+    else:
+        A = metric_upgrade_pd(L)
+        rows = np.einsum("ia,kib->kba", A, L)
+        A = A / np.sqrt(np.mean(np.sum(rows ** 2, axis=(1, 2)) / 2))  # unit-length rows
     X = X @ np.linalg.inv(A).T
     P = project_rows(np.einsum("ia,kib->kba", A, L))
     return X, P
+
+
+def metric_upgrade_pd(L: np.ndarray) -> np.ndarray:
+    """A (3x3, invertible) with L_k^T A A^T L_k = s_k^2 I as nearly as possible.
+
+    Weak perspective: each view's two camera rows (columns of L_k) are
+    orthogonal and of equal length under M = A A^T. A is lower-triangular and
+    fitted by least squares, so M is positive definite by construction, unlike
+    the linear solution, which noise or a perspective camera can make
+    indefinite (and the cloud then blows up along the clipped direction).
+    """
+    l1, l2 = L[:, :, 0], L[:, :, 1]
+    rows, cols = np.tril_indices(3)
+
+    def residual(a):
+        A = np.zeros((3, 3))
+        A[rows, cols] = a
+        u, v = l1 @ A, l2 @ A
+        p, q, r = np.sum(u * u, 1), np.sum(v * v, 1), np.sum(u * v, 1)
+        total = p + q + 1e-300
+        return np.concatenate([(p - q) / total, 2 * r / total, [np.log(np.abs(np.diag(A))).sum()]])
+
+    starts = [np.eye(3)[rows, cols]]
+    linear = _linear_upgrade(L)
+    if linear is not None:
+        starts.insert(0, linear[rows, cols])
+    method = "lm" if 2 * len(L) + 1 >= 6 else "trf"  # lm needs as many residuals as unknowns
+    best = min((least_squares(residual, a0, method=method, xtol=1e-15, ftol=1e-15, gtol=1e-15)
+                for a0 in starts), key=lambda r: r.cost)
+    A = np.zeros((3, 3))
+    A[rows, cols] = best.x
+    return A
+
+
+def _linear_upgrade(L: np.ndarray) -> np.ndarray | None:
+    """The Cholesky factor of the linear least-squares M, when it is positive definite."""
+    iu = np.triu_indices(3)
+    halve = np.where(iu[0] == iu[1], 2.0, 1.0)
+
+    def coefficients(a, b):
+        outer = np.einsum("ki,kj->kij", a, b)
+        return (outer + outer.transpose(0, 2, 1))[:, iu[0], iu[1]] / halve
+
+    l1, l2 = L[:, :, 0], L[:, :, 1]
+    # equal lengths and orthogonal rows, and the mean squared length fixed to 1
+    system = np.concatenate([coefficients(l1, l1) - coefficients(l2, l2), coefficients(l1, l2),
+                             (coefficients(l1, l1) + coefficients(l2, l2)).mean(0, keepdims=True)])
+    target = np.zeros(len(system))
+    target[-1] = 2.0
+    m = np.linalg.lstsq(system, target, rcond=None)[0]
+    M = np.zeros((3, 3))
+    M[iu] = m
+    M = M + M.T - np.diag(np.diag(M))
+    try:
+        return np.linalg.cholesky(M)
+    except np.linalg.LinAlgError:
+        return None
+
+
+# Views whose directions leave a blind one: sum_k ||P^k d||^2 below this share of K
+# for some unit d. Real views never do; a noisy affine fit drifting to a
+# near-planar cloud does, and its metric cloud is then stretched along d.
+_BLIND = 1e-3
+_FALLBACK_SWEEPS = (20, 5, 1)
+
+
+def blindness(P: np.ndarray) -> float:
+    """min over unit d of sum_k ||P^k d||^2 / K: 0 when the views share a blind direction."""
+    return float(np.linalg.eigvalsh(np.einsum("kai,kaj->ij", P, P))[0]) / len(P)
+
+
+def _variable(observations, images, max_iter, tol):
+    """The variable setting (step 3), with a checked fallback: when noise lets the
+    alternating sweeps drift to a cloud that all upgraded views see edge-on,
+    fewer sweeps are tried, and if none helps it is said."""
+    view, point, z = _stacked(observations, images)
+    for sweeps in (max_iter,) + tuple(s for s in _FALLBACK_SWEEPS if s < max_iter):
+        X, L, rms, done = affine_als(view, point, z, observations.n_points,
+                                     observations.n_views, sweeps, tol)
+        X, P = metric_upgrade(X, L)
+        if blindness(P) >= _BLIND:
+            return X, P, rms, done
+    warn(f"the upgraded views all but share a blind direction (blindness {blindness(P):.2g}): the "
+         "cloud is not determined along it; the views are too noisy for factorize (refine "
+         "starts from it and recovers)")
+    return X, P, rms, done
 
 
 _PARAMETER_CONSTRAINTS = {
@@ -288,10 +380,7 @@ def solve_factorize(observations: Observations, *, random_state=None,
         P = np.asarray(observations.projections, dtype=float)
         sweeps, termination = 0, "closed form"
     else:
-        view, point, z = _stacked(observations, images)
-        X, L, rms, sweeps = affine_als(view, point, z, observations.n_points,
-                                       observations.n_views, max_iter, tol)
-        X, P = metric_upgrade(X, L)
+        X, P, rms, sweeps = _variable(observations, images, max_iter, tol)
         termination = f"affine factorisation, RMS residual {rms:.2e}"
     stress = Stress(observations).value(X, P)
     return Reconstruction(points=X, projections=P, stress=stress,
