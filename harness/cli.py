@@ -351,7 +351,8 @@ def cmd_reconstruct(args) -> int:
     problem = prepare(args.input, projections=args.projections, solver=args.solver,
                       loss=args.loss, random_state=args.seed, objective=args.objective,
                       camera=args.camera, missing=args.missing,
-                      outlier_threshold=args.outlier_threshold)
+                      outlier_threshold=args.outlier_threshold,
+                      principal_point=args.principal_point)
     check_ids_fit(out, problem.ids)
     result = solve(problem)
     write_result(out, result, report, {"input": str(args.input), "output": str(out)})
@@ -377,7 +378,7 @@ def _reconstruct_summary(summary: dict) -> str:
 
 
 def _pair(text: str):
-    """``X,Y`` as two numbers, for --missing."""
+    """``X,Y`` as two numbers, for --missing and --principal-point."""
     try:
         x, y = (float(v) for v in text.split(","))
     except ValueError:
@@ -559,6 +560,9 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--camera", default="auto", choices=("auto", "orthographic", "scaled", "perspective"),
                      help="the camera model for reprojection (default auto: the pinhole camera "
                      "when it fits clearly better than weak perspective)")
+    rec.add_argument("--principal-point", type=_pair, metavar="X,Y",
+                     help="the pinhole camera's principal point in pixels, usually the image "
+                     "centre (default: the centre of the keypoints)")
     rec.add_argument("--missing", type=_pair, metavar="X,Y",
                      help="drop observations at exactly X,Y (e.g. -1,-1: a tracker's 'not seen')")
     rec.add_argument("--outlier-threshold", type=float, default=20.0, metavar="SIGMAS",

@@ -179,6 +179,7 @@ class Problem:
     camera: str = "auto"
     cameras: np.ndarray | None = None  # known: (K, 2, 3) rows or (K, 3, 4) pinhole matrices
     outlier_threshold: float = bundle.OUTLIER_THRESHOLD
+    principal_point: tuple | None = None
     view_names: list = field(default_factory=list)
     notes: list = field(default_factory=list)
 
@@ -190,6 +191,11 @@ def _check_random_state(random_state) -> None:
             or random_state < 0:
         raise MpeError(f"random_state: expected an integer >= 0 or a numpy Generator, "
                        f"got {random_state!r}")
+
+
+def _check_pair(value, name):
+    if value is not None and (np.shape(value) != (2,) or not np.all(np.isfinite(value))):
+        raise MpeError(f"{name}: expected two finite numbers x, y, got {value!r}")
 
 
 def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
@@ -205,16 +211,16 @@ def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
             or not outlier_threshold > 0:
         raise MpeError(f"outlier_threshold: expected a number > 0 (inf keeps every observation), "
                        f"got {outlier_threshold!r}")
-    if missing is not None and (np.shape(missing) != (2,) or not np.all(np.isfinite(missing))):
-        raise MpeError(f"missing: expected two finite numbers x, y, got {missing!r}")
+    _check_pair(missing, "missing")
 
 
 def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
             loss: str = "l2", random_state=0, objective: str | None = None,
             camera: str = "auto", missing=None,
-            outlier_threshold: float = bundle.OUTLIER_THRESHOLD) -> Problem:
+            outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None) -> Problem:
     """Read and check every input of :func:`reconstruct` without solving anything."""
     _check_choices(solver, loss, objective, camera, outlier_threshold, missing)
+    _check_pair(principal_point, "principal_point")
     _check_random_state(random_state)
     source = str(views) if isinstance(views, (str, Path)) else "views"
     if isinstance(views, (str, Path)):
@@ -247,7 +253,7 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
         raise MpeError(f"{projections_source}: {len(projections)} matrices for {obs.n_views} views")
     names = [str(view.get("name", k)) for k, view in enumerate(views)]
     return Problem(obs, ids, solver, loss, random_state, objective, camera, projections,
-                   float(outlier_threshold), names, notes)
+                   float(outlier_threshold), principal_point, names, notes)
 
 
 def solve(problem: Problem) -> Result:
@@ -280,7 +286,8 @@ def _solve_reprojection(problem: Problem):
         return bundle.known_cameras(tracks, problem.cameras, loss=problem.loss,
                                     outlier_threshold=problem.outlier_threshold)
     return bundle.bundle_adjust(tracks, problem.camera, loss=problem.loss,
-                                outlier_threshold=problem.outlier_threshold)
+                                outlier_threshold=problem.outlier_threshold,
+                                principal_point=problem.principal_point)
 
 
 def _stop_notes(fit) -> list[str]:
@@ -296,7 +303,7 @@ def _stop_notes(fit) -> list[str]:
 def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
                 loss: str = "l2", random_state=0, objective: str | None = None,
                 camera: str = "auto", missing=None,
-                outlier_threshold: float = bundle.OUTLIER_THRESHOLD) -> Result:
+                outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None) -> Result:
     """Rebuild a 3D cloud from user views.
 
     Parameters
@@ -324,9 +331,12 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     outlier_threshold : float, default 20
         Reprojection: observations beyond this many robust sigmas are taken for
         wrong matches and dropped (listed in the report); ``inf`` keeps all.
+    principal_point : None or (x, y), default None
+        The pinhole camera's principal point in pixels (the image centre);
+        None takes the centre of the keypoints' bounding box.
     """
     return solve(prepare(views, projections, solver, loss, random_state, objective, camera,
-                         missing, outlier_threshold))
+                         missing, outlier_threshold, principal_point))
 
 
 def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, runtime: float) -> dict:

@@ -63,7 +63,7 @@ _DENSE_Y = 4_000_000  # entries of the Schur factor Y below which it is made den
 OUTLIER_THRESHOLD = 20.0
 # Rayleigh: the median of ||r|| for isotropic Gaussian 2D residuals of std sigma.
 _RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))
-AUTO_RATIO = 0.8  # camera="auto" keeps the pinhole below this share of the weak RMS
+AUTO_RATIO = 0.8  # camera="auto" keeps the pinhole below this share of the weak median residual
 DISAGREE_RATIO = 0.5  # another model this much better is said
 
 
@@ -155,7 +155,7 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
         The observations, in pixels.
     camera : {"auto", "orthographic", "scaled", "perspective"}, default "auto"
         "auto" fits ``scaled`` and ``perspective`` and keeps the pinhole camera
-        when it explains the keypoints clearly better (RMS below
+        when it explains the keypoints clearly better (median residual below
         ``AUTO_RATIO`` times the weak perspective's).
     principal_point : (2,) or None, default None
         Perspective only; None takes the centre of the keypoints' bounding box.
@@ -190,12 +190,15 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
             fits[model] = (_orthographic if model == "orthographic" else _perspective)(
                 *fit[:2], tracks.subset(used), principal_point, shared_focal, solve)
     rms = {model: _rms_of(f, tracks, used) for model, f in fits.items()}
+    # the models are judged by their median residual, which wrong matches do not sway
+    median = {model: _median_of(f, tracks, used) for model, f in fits.items()}
     if not np.isfinite(rms[camera if camera != "auto" else "scaled"]):
         raise MpeError("the keypoints do not determine a 3D shape: no start gives finite "
                        "cameras (a planar scene, or too few points shared by the views?)")
     if camera == "auto":
-        camera = "perspective" if rms["perspective"] < AUTO_RATIO * rms["scaled"] else "scaled"
-    _say_if_the_data_disagree(camera, rms)
+        camera = "perspective" if median["perspective"] < AUTO_RATIO * median["scaled"] \
+            else "scaled"
+    _say_if_the_data_disagree(camera, median)
     fit, dropped = _without_outliers(fits[camera], tracks, np.zeros(len(used), dtype=bool),
                                      outlier_threshold, solve)
     return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms)
@@ -282,11 +285,12 @@ def _scaled(tracks, solve):
 def _best_of(starts, tracks, solve):
     """Scout each ((X, cameras), extra) start for a few iterations, then solve
     the lowest to the end; returns (X, cameras, history, converged) and its extra."""
-    scouted = [(adjust(*start, tracks, **{**solve, "max_iter": _SCOUT}), extra)
+    scout = {**solve, "max_iter": min(_SCOUT, solve["max_iter"])}
+    scouted = [(adjust(*start, tracks, **scout), extra)
                for start, extra in starts]
-    (X, cameras, scout, _), extra = min(scouted, key=lambda f: f[0][2][-1])
+    (X, cameras, scouting, _), extra = min(scouted, key=lambda f: f[0][2][-1])
     X, cameras, history, converged = adjust(X, cameras, tracks, **solve)
-    return (X, cameras, np.concatenate([scout, history[1:]]), converged), extra
+    return (X, cameras, np.concatenate([scouting, history[1:]]), converged), extra
 
 
 def _informative(tracks: Tracks, kept: np.ndarray) -> np.ndarray:
@@ -302,6 +306,12 @@ def _placed(tracks, used) -> np.ndarray:
     return np.bincount(tracks.point[used], minlength=tracks.n_points) >= 2
 
 
+def _median_of(fit, tracks, kept) -> float:
+    X, cameras = fit[:2]
+    r = cameras.project(X, tracks.view[kept], tracks.point[kept]) - tracks.z[kept]
+    return float(np.median(np.linalg.norm(r, axis=1)))
+
+
 def _rms_of(fit, tracks, kept) -> float:
     X, cameras = fit[:2]
     return _rms(cameras.project(X, tracks.view[kept], tracks.point[kept]) - tracks.z[kept])
@@ -311,10 +321,10 @@ def _without_outliers(fit, tracks, dropped, threshold, solve):
     """Find wrong matches, drop them and solve again, until none is left.
 
     Peeling: the observations beyond ``threshold`` robust sigmas (from the
-    median residual length) are dropped, at most one per point and round (its
-    worst: a wrong match drags its point, and so the point's other residuals,
-    with it), and only where the point keeps 3 views, so that it stays placed
-    and testable. As the fit sheds them the sigma shrinks and subtler ones
+    median residual length) are dropped, at most one per point and one per
+    view and round, the worst (a wrong match drags its point and its camera,
+    and so their other residuals, with it), and only where the point keeps 3
+    views, so that it stays placed and testable. As the fit sheds them the sigma shrinks and subtler ones
     show. A view keeps at least 6 observations.
     """
     if not np.isfinite(threshold):
@@ -326,10 +336,9 @@ def _without_outliers(fit, tracks, dropped, threshold, solve):
         sigma = _sigma(X, cameras, tracks, kept)
         length = np.linalg.norm(cameras.project(X, tracks.view, tracks.point) - tracks.z, axis=1)
         length = np.where(kept, np.nan_to_num(length, nan=np.inf), -1.0)
-        worst = np.full(tracks.n_points, -1)
         ranked = np.argsort(length)
-        worst[tracks.point[ranked]] = ranked  # each point's longest residual is written last
-        worst = worst[worst >= 0]
+        worst = np.intersect1d(_last_of(tracks.point[ranked], ranked),  # the worst of its point
+                               _last_of(tracks.view[ranked], ranked))  # and of its view
         counts = np.bincount(tracks.point[kept], minlength=tracks.n_points)
         worst = worst[(length[worst] > threshold * sigma) & (counts[tracks.point[worst]] >= 4)]
         bad = np.zeros(len(tracks.view), dtype=bool)
@@ -346,24 +355,33 @@ def _without_outliers(fit, tracks, dropped, threshold, solve):
     return fit, dropped
 
 
+def _last_of(groups: np.ndarray, items: np.ndarray) -> np.ndarray:
+    """The last item of each group, in the order given."""
+    _, first = np.unique(groups[::-1], return_index=True)
+    return np.sort(items[::-1][first])
+
+
 def _sigma(X, cameras, tracks, kept) -> float:
     length = np.linalg.norm(cameras.project(X, tracks.view[kept], tracks.point[kept])
                             - tracks.z[kept], axis=1)
-    return max(float(np.median(length)) / _RAYLEIGH_MEDIAN, 1e-12 * _image_size(tracks))
+    # floored: keypoints are never better than 1e-5 of the image, and exact data solved
+    # loosely between rounds must not make its last digits look like wrong matches
+    return max(float(np.median(length)) / _RAYLEIGH_MEDIAN, 1e-5 * _image_size(tracks))
 
 
 def _image_size(tracks) -> float:
     return float(np.max(np.ptp(tracks.z, axis=0))) or 1.0
 
 
-def _say_if_the_data_disagree(camera, rms):
+def _say_if_the_data_disagree(camera, median):
     """One line when another camera model explains the keypoints far better."""
-    better = {model: value for model, value in rms.items()
-              if model != camera and value < DISAGREE_RATIO * rms[camera]}
+    better = {model: value for model, value in median.items()
+              if model != camera and value < DISAGREE_RATIO * median[camera]}
     if better:
         model = min(better, key=better.get)
-        warn(f"the keypoints disagree with the {camera} camera: RMS {rms[camera]:.3g} px, "
-             f"against {better[model]:.3g} px with the {model} camera (camera='{model}')")
+        warn(f"the keypoints disagree with the {camera} camera: median residual "
+             f"{median[camera]:.3g} px, against {better[model]:.3g} px with the {model} camera "
+             f"(camera='{model}')")
 
 
 def _place_unplaced(X, cameras, tracks, placed, kept):
