@@ -51,6 +51,7 @@ LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 _FOCAL_STARTS = (1.0, 2.0, 4.0)
 _SCOUT = 8  # iterations from each start before the best is chosen
 _ROUND_TOL = 1e-6  # between two rounds of dropping wrong matches
+_EXACT = 1e-12  # an RMS below this share of the image is exact: no model can do better
 _TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins in turn
 # A cloud longer than this many times its second extent has not been determined
 # along its long axis: the views leave its depth free.
@@ -182,10 +183,13 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     # The models are compared on the same observations, before any is dropped:
     # a weak-perspective misfit of perspective data is no wrong match.
     fits = {"scaled": fit}
+    exact = _rms_of(fit, tracks, used) <= 1e3 * _EXACT * _image_size(tracks)
+    if exact and camera == "auto":  # orthographic views, noise-free: nothing fits better
+        camera = "scaled"
     wanted = ("scaled", "perspective") if camera == "auto" else (camera,)
     others = {"orthographic": ("scaled", "perspective"), "scaled": ("perspective",),
               "perspective": ("scaled",)}
-    for model in dict.fromkeys(wanted + others.get(camera, ())):  # the check's fits too
+    for model in dict.fromkeys(wanted + ((), others.get(camera, ()))[not exact]):  # + checks
         if model not in fits:
             fits[model] = (_orthographic if model == "orthographic" else _perspective)(
                 *fit[:2], tracks.subset(used), principal_point, shared_focal, solve)
@@ -541,19 +545,23 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     if not np.isfinite(cost) or not np.all(np.isfinite(X)):  # e.g. a point behind a camera
         return X, cameras, np.array([np.inf]), False
     history, converged, nu = [_rms(r)], False, 2.0
+    if history[0] <= _EXACT * _image_size(tracks):  # exact already: nothing to descend
+        return X, cameras, np.array(history), True
     for iteration in range(1, max_iter + 1):
         d_x, d_view, d_shared = cameras.jacobian_blocks(X, view, point)
         d_c = np.concatenate([d_view, d_shared], axis=2)  # (T, 2, c)
         d_c = d_c * free[structure.cols][:, None, :]
         wr = weight[:, None] * r
-        U = _sum_rows(point, np.einsum("tai,t,taj->tij", d_x, weight, d_x), N)
+        wd_x = weight[:, None, None] * d_x  # batched matmuls: far faster than 3-operand einsum
+        wd_xt = wd_x.transpose(0, 2, 1)
+        U = _sum_rows(point, wd_xt @ d_x, N)
         U[unseen] = np.eye(3)
-        W = np.einsum("tai,t,taj->tij", d_x, weight, d_c)  # (T, 3, c)
+        W = wd_xt @ d_c  # (T, 3, c)
         g_x = _sum_rows(point, np.einsum("tai,ta->ti", d_x, wr), N)
         g_c = np.bincount(structure.cols.ravel(), minlength=structure.size,
                           weights=np.einsum("taj,ta->tj", d_c, wr).ravel())
         V = np.bincount(structure.obs_index.ravel(), minlength=structure.size ** 2,
-                        weights=np.einsum("tai,t,taj->tij", d_c, weight, d_c).ravel())
+                        weights=((weight[:, None, None] * d_c).transpose(0, 2, 1) @ d_c).ravel())
         V = V.reshape(structure.size, structure.size).astype(float)
         while True:
             step = _damped_step(U, V, W, g_x, g_c, lam, structure, point)
