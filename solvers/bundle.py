@@ -33,8 +33,8 @@ from typing import Any
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
-from threadpoolctl import threadpool_limits
 from scipy.sparse import csr_matrix
+from threadpoolctl import threadpool_limits
 
 from mpe3d.errors import MpeError
 
@@ -42,6 +42,7 @@ from .base import Observations
 from .cameras import CAMERAS, MATRIX, Cameras, affine_cameras, known_matrices
 from .degenerate import warn
 from .factorize import _stacked, affine_als, metric_upgrade_pd
+from .linalg import elongation
 from .stress import project_rows
 
 LOSSES = ("l2", "huber", "soft_l1", "cauchy")
@@ -435,15 +436,6 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, solv
                 "perspective", mirror * R[:, :2], s, t, focal=factor * size,
                 principal_point=c, shared_focal=shared_focal)), None))
     return _best_of(starts, tracks, solve)[0]
-
-
-def elongation(X: np.ndarray) -> float:
-    """The cloud's longest principal extent over its second: huge when a flat
-    direction of the weak-perspective problem (depth under a small baseline)
-    has run away."""
-    extents = np.ptp((X - X.mean(axis=0)) @ np.linalg.svd(X - X.mean(axis=0),
-                                                         full_matrices=False)[2].T, axis=0)
-    return float(extents[0] / max(extents[1], 1e-300))
 
 
 def _bounded_depth(X: np.ndarray, limit: float = _ELONGATION) -> np.ndarray:

@@ -26,6 +26,7 @@ from scipy.optimize import least_squares
 
 from .base import Interval, Observations, Reconstruction, register
 from .degenerate import check_geometry, warn
+from .linalg import elongation
 from .stress import Stress, project_rows
 
 
@@ -322,6 +323,7 @@ def _linear_upgrade(L: np.ndarray) -> np.ndarray | None:
 # near-planar cloud does, and its metric cloud is then stretched along d.
 _BLIND = 1e-3
 _FALLBACK_SWEEPS = (20, 5, 1)
+_ELONGATED = 20.0  # longest over second principal extent: no bundled shape passes 5
 
 
 def blindness(P: np.ndarray) -> float:
@@ -334,12 +336,20 @@ def _variable(observations, images, max_iter, tol):
     alternating sweeps drift to a cloud that all upgraded views see edge-on,
     fewer sweeps are tried, and if none helps it is said."""
     view, point, z = _stacked(observations, images)
+    tried = []
     for sweeps in (max_iter,) + tuple(s for s in _FALLBACK_SWEEPS if s < max_iter):
         X, L, rms, done = affine_als(view, point, z, observations.n_points,
                                      observations.n_views, sweeps, tol)
         X, P = metric_upgrade(X, L)
-        if blindness(P) >= _BLIND:
+        if blindness(P) >= _BLIND and elongation(X) <= _ELONGATED:
             return X, P, rms, done
+        tried.append((X, P, rms, done))
+    # none passed: the least degenerate, said (seeing every direction first, then the roundest)
+    X, P, rms, done = max(tried, key=lambda c: (blindness(c[1]) >= _BLIND, -elongation(c[0])))
+    if blindness(P) >= _BLIND:
+        warn(f"the cloud is {elongation(X):.3g} times longer than wide: the views, too noisy for "
+             "factorize, may not determine its long axis (refine starts from it and recovers)")
+        return X, P, rms, done
     warn(f"the upgraded views all but share a blind direction (blindness {blindness(P):.2g}): the "
          "cloud is not determined along it; the views are too noisy for factorize (refine "
          "starts from it and recovers)")

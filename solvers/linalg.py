@@ -36,3 +36,12 @@ def classical_mds(D: np.ndarray, dim: int, random_state=None) -> np.ndarray:
     if X.shape[1] < dim:
         X = np.hstack([X, np.zeros((n, dim - X.shape[1]))])
     return X
+
+
+def elongation(X: np.ndarray) -> float:
+    """The cloud's longest principal extent over its second: huge when a flat
+    direction of the problem (depth under a small baseline, or a direction
+    the noisy views all but miss) has run away."""
+    extents = np.ptp((X - X.mean(axis=0)) @ np.linalg.svd(X - X.mean(axis=0),
+                                                         full_matrices=False)[2].T, axis=0)
+    return float(extents[0] / max(extents[1], 1e-300))

@@ -10,7 +10,7 @@ from mpe3d.errors import MpeError
 from mpe3d.harness.cli import main
 from mpe3d.harness.reconstruct import reconstruct
 from mpe3d.solvers import bundle
-from mpe3d.solvers.cameras import affine_cameras, exp_so3
+from mpe3d.solvers.cameras import exp_so3
 
 from .helpers import SHARED
 
