@@ -6,23 +6,28 @@ they pose is bundle adjustment, not the distance stress of paper Eq. 1:
     E(X, C) = sum_t rho(||u_k(x_i; C_k) - z_t||^2)
 
 over the observations t = (view k, point i, 2D point z_t), for a camera model
-u (:mod:`mpe3d.solvers.cameras`). It is solved by sparse nonlinear least
-squares (``scipy.optimize.least_squares``, trust-region reflective, with the
-analytic Jacobian as a sparse matrix: 3 + 5..7 non-zeros per row), from a
-start that cannot blow up:
+u (:mod:`mpe3d.solvers.cameras`) with analytic Jacobians. It is solved by
+Levenberg-Marquardt with the points eliminated (the Schur complement: a 3x3
+block per point, a dense K * (5..7) camera system), bundle adjustment's
+standard solver. ``scipy.optimize.least_squares`` with the same sparse
+Jacobian (trust-region reflective, LSMR) reaches the same optimum but took
+43 s to converge on VGG's dino tracks, where this takes 0.3 s. The start
+cannot blow up:
 
-1. an affine factorisation with missing data (:mod:`.factorize`), every
-   point and view refitted in turn until the RMS residual stops falling;
+1. an affine factorisation with missing data (:mod:`.factorize`), grown from
+   the best pair of views, from 1 and from 20 alternating sweeps, each scouted
+   and the better one kept;
 2. a metric upgrade that is positive definite by construction: M = A A^T
    with A lower-triangular, fitted by least squares to the weak-perspective
    conditions (each view's two rows orthogonal and of equal length) from
    the linear solution and from the identity, the better one kept;
 3. bundle adjustment of the ``scaled`` model; ``orthographic`` from it with
-   one scale for all views, ``perspective`` from it at several focal lengths,
-   the one with the lowest error kept.
+   one scale for all views, ``perspective`` from it at several focal lengths
+   and in both depth orders, the one with the lowest error kept.
 
-Wrong matches are found by a robust residual scale (the median residual of
-the inliers), dropped and the problem solved again, until none is left.
+Wrong matches are peeled off against a robust residual scale (the median
+residual length) and the problem solved again, until none is left
+(:func:`_without_outliers`).
 """
 
 from __future__ import annotations
