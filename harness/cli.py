@@ -604,5 +604,25 @@ def main(argv: list[str] | None = None) -> int:
         return 0
 
 
+def console() -> int:
+    """The ``mpe3d`` command: :func:`main`, and after an interrupt an immediate exit.
+
+    A sweep stopped by Ctrl-C or SIGTERM returns while its worker thread may
+    still be inside a solver's compiled code; finalising the interpreter
+    around that thread can abort the process ("terminate called without an
+    active exception", exit -6 instead of 130, in about half of the trials).
+    Every finished run is logged or journaled by then, so the process leaves
+    without finalising.
+    """
+    import threading
+
+    code = main()
+    if code == 130 and threading.active_count() > 1:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code)
+    return code
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(console())
