@@ -261,27 +261,25 @@ def solve(problem: Problem) -> Result:
     start = time.perf_counter()
     with collect_notes(labels=problem.ids) as notes:  # notes about the input go in the report
         if problem.objective == "reprojection":
-            fit = _solve_reprojection(problem)
+            tracks = bundle.Tracks.from_observations(problem.observations)
+            fit = _solve_reprojection(problem, tracks)
         else:
             options = {"loss": problem.loss} if problem.solver == "refine" else {}
             fit = solvers.solve(problem.solver, problem.observations,
                                 random_state=problem.random_state, **options)
     runtime = time.perf_counter() - start
     if problem.objective == "reprojection":
-        report = _reprojection_report(problem, fit, runtime)
-        projections = fit.cameras.current_rotations()[:, :2] if fit.cameras.model != "matrix" \
-            else problem.cameras
-        return Result(points=fit.points, ids=problem.ids, projections=np.asarray(projections),
-                      report={**report, "warnings": problem.notes + notes + _stop_notes(fit)})
-    report = _report(problem.observations, fit, problem.ids, problem.solver, problem.loss, runtime)
+        report = _reprojection_report(problem, tracks, fit, runtime)
+    else:
+        report = _report(problem.observations, fit, problem.ids, problem.solver, problem.loss,
+                         runtime)
     report["warnings"] = problem.notes + notes + _stop_notes(fit)
-    return Result(points=fit.points, ids=problem.ids, projections=np.asarray(fit.projections),
-                  report=report)
+    return Result(points=fit.points, ids=problem.ids,
+                  projections=np.asarray(report["projections"]), report=report)
 
 
-def _solve_reprojection(problem: Problem):
+def _solve_reprojection(problem: Problem, tracks):
     check_geometry(problem.observations)  # one line for what cannot determine a shape
-    tracks = bundle.Tracks.from_observations(problem.observations)
     if problem.cameras is not None:
         return bundle.known_cameras(tracks, problem.cameras, loss=problem.loss,
                                     outlier_threshold=problem.outlier_threshold)
@@ -359,12 +357,11 @@ def _report(obs: Observations, rec, ids: np.ndarray, solver: str, loss: str, run
     }
 
 
-def _reprojection_report(problem: Problem, fit, runtime: float) -> dict:
+def _reprojection_report(problem: Problem, tracks, fit, runtime: float) -> dict:
     """Reprojection RMS per view in pixels, the cameras (and as ``projections``
     their rotations' first rows, or the given 3x4 matrices), the dropped
     observations."""
     obs, ids, names = problem.observations, problem.ids, problem.view_names
-    tracks = bundle.Tracks.from_observations(obs)
     length2 = np.sum(fit.residuals ** 2, axis=1)
     kept = ~fit.dropped
     per_view = [float(np.sqrt(np.mean(length2[(tracks.view == k) & kept])))

@@ -46,7 +46,7 @@ from mpe3d.errors import MpeError
 from .base import Observations
 from .cameras import CAMERAS, MATRIX, Cameras, affine_cameras, known_matrices
 from .degenerate import warn
-from .factorize import _stacked, affine_als, metric_upgrade_pd
+from .factorize import _stacked, _sum_by, affine_als, metric_upgrade_pd
 from .linalg import elongation
 from .stress import project_rows
 
@@ -256,7 +256,8 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
         A, b = matrices[sub.view], sub.z
         for _ in range(_TRANSLATION_SWEEPS):
             X = _least_squares_points(A, b - cameras.params[sub.view, 3:5], sub)
-            cameras.params[:, 3:5] = _mean_by_view(sub.z - np.einsum("tij,tj->ti", A, X[sub.point]), sub)
+            residual = sub.z - np.einsum("tij,tj->ti", A, X[sub.point])
+            cameras.params[:, 3:5] = _mean_by_view(residual, sub)
     if cameras.model == MATRIX:
         X = _least_squares_points(A, b, sub)
     fit = adjust(X, cameras, sub, **solve, frozen=frozen)
@@ -276,8 +277,8 @@ def _pinhole_rows(P, view, z):
 
 def _least_squares_points(A, b, tracks):
     """x_i minimising sum_t ||A_t x_i - b_t||^2 over each point's observations."""
-    lhs = _sum_rows(tracks.point, np.einsum("tai,taj->tij", A, A), tracks.n_points)
-    rhs = _sum_rows(tracks.point, np.einsum("tai,ta->ti", A, b), tracks.n_points)
+    lhs = _sum_by(tracks.point, np.einsum("tai,taj->tij", A, A), tracks.n_points)
+    rhs = _sum_by(tracks.point, np.einsum("tai,ta->ti", A, b), tracks.n_points)
     return np.einsum("nij,nj->ni", np.linalg.pinv(lhs), rhs)
 
 
@@ -316,15 +317,18 @@ def _placed(tracks, used) -> np.ndarray:
     return np.bincount(tracks.point[used], minlength=tracks.n_points) >= 2
 
 
+def _lengths(X, cameras, tracks, rows=slice(None)) -> np.ndarray:
+    """||u_t - z_t|| for the observations ``rows``."""
+    r = cameras.project(X, tracks.view[rows], tracks.point[rows]) - tracks.z[rows]
+    return np.linalg.norm(r, axis=1)
+
+
 def _median_of(fit, tracks, kept) -> float:
-    X, cameras = fit[:2]
-    r = cameras.project(X, tracks.view[kept], tracks.point[kept]) - tracks.z[kept]
-    return float(np.median(np.linalg.norm(r, axis=1)))
+    return float(np.median(_lengths(*fit[:2], tracks, kept)))
 
 
 def _rms_of(fit, tracks, kept) -> float:
-    X, cameras = fit[:2]
-    return _rms(cameras.project(X, tracks.view[kept], tracks.point[kept]) - tracks.z[kept])
+    return float(np.sqrt(np.mean(_lengths(*fit[:2], tracks, kept) ** 2)))
 
 
 def _without_outliers(fit, tracks, dropped, threshold, solve):
@@ -334,8 +338,8 @@ def _without_outliers(fit, tracks, dropped, threshold, solve):
     median residual length) are dropped, at most one per point and one per
     view and round, the worst (a wrong match drags its point and its camera,
     and so their other residuals, with it), and only where the point keeps 3
-    views, so that it stays placed and testable. As the fit sheds them the sigma shrinks and subtler ones
-    show. A view keeps at least 6 observations.
+    views, so that it stays placed and testable. As the fit sheds them the
+    sigma shrinks and subtler ones show. A view keeps at least 6 observations.
     """
     if not np.isfinite(threshold):
         return fit, dropped
@@ -344,8 +348,7 @@ def _without_outliers(fit, tracks, dropped, threshold, solve):
         kept = _informative(tracks, ~dropped)
         X, cameras = fit[:2]
         sigma = _sigma(X, cameras, tracks, kept)
-        length = np.linalg.norm(cameras.project(X, tracks.view, tracks.point) - tracks.z, axis=1)
-        length = np.where(kept, np.nan_to_num(length, nan=np.inf), -1.0)
+        length = np.where(kept, np.nan_to_num(_lengths(X, cameras, tracks), nan=np.inf), -1.0)
         ranked = np.argsort(length)
         worst = np.intersect1d(_last_of(tracks.point[ranked], ranked),  # the worst of its point
                                _last_of(tracks.view[ranked], ranked))  # and of its view
@@ -372,8 +375,7 @@ def _last_of(groups: np.ndarray, items: np.ndarray) -> np.ndarray:
 
 
 def _sigma(X, cameras, tracks, kept) -> float:
-    length = np.linalg.norm(cameras.project(X, tracks.view[kept], tracks.point[kept])
-                            - tracks.z[kept], axis=1)
+    length = _lengths(X, cameras, tracks, kept)
     # floored: keypoints are never better than 1e-5 of the image, and exact data solved
     # loosely between rounds must not make its last digits look like wrong matches
     return max(float(np.median(length)) / _RAYLEIGH_MEDIAN, 1e-5 * _image_size(tracks))
@@ -409,7 +411,7 @@ def _place_unplaced(X, cameras, tracks, placed, kept):
     r = cameras.project(X, tracks.view[lonely], tracks.point[lonely]) - tracks.z[lonely]
     step = np.einsum("tij,tj->ti", np.linalg.pinv(d_x), -r)
     counts = np.maximum(np.bincount(tracks.point[lonely], minlength=tracks.n_points), 1)
-    X += _sum_rows(tracks.point[lonely], step, tracks.n_points) / counts[:, None]
+    X += _sum_by(tracks.point[lonely], step, tracks.n_points) / counts[:, None]
     return X
 
 
@@ -429,7 +431,7 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, solv
     z = tracks.z
     c = (z.min(axis=0) + z.max(axis=0)) / 2 if principal_point is None \
         else np.asarray(principal_point, dtype=float)
-    size = float(np.max(np.ptp(z, axis=0)))
+    size = _image_size(tracks)
     R, s, t = scaled.current_rotations(), scaled.scale(), scaled.params[:, 3:5]
     centre = X.mean(axis=0)  # the pinhole matches the weak perspective at the centroid
     X, t = X - centre, t + s[:, None] * (R[:, :2] @ centre)
@@ -469,8 +471,7 @@ def _translations_for(X, P, scale, tracks):
 
 def _mean_by_view(values, tracks):
     counts = np.maximum(np.bincount(tracks.view, minlength=tracks.n_views), 1)
-    return np.stack([np.bincount(tracks.view, weights=values[:, c], minlength=tracks.n_views)
-                     for c in range(2)], axis=1) / counts[:, None]
+    return _sum_by(tracks.view, values, tracks.n_views) / counts[:, None]
 
 
 # -- bundle adjustment -----------------------------------------------------------
@@ -481,7 +482,8 @@ def _robust_weights(squared: np.ndarray, loss: str, scale: float):
     if loss == "l2":
         return float(squared.sum()), np.ones_like(s)
     if loss == "huber":
-        rho, weight = np.where(s <= 1, s, 2 * np.sqrt(s) - 1), np.where(s <= 1, 1.0, 1 / np.sqrt(np.maximum(s, 1)))
+        root = np.sqrt(np.maximum(s, 1))
+        rho, weight = np.where(s <= 1, s, 2 * root - 1), np.where(s <= 1, 1.0, 1 / root)
     elif loss == "soft_l1":
         rho, weight = 2 * (np.sqrt(1 + s) - 1), 1 / np.sqrt(1 + s)
     else:  # cauchy
@@ -551,10 +553,10 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
         wr = weight[:, None] * r
         wd_x = weight[:, None, None] * d_x  # batched matmuls: far faster than 3-operand einsum
         wd_xt = wd_x.transpose(0, 2, 1)
-        U = _sum_rows(point, wd_xt @ d_x, N)
+        U = _sum_by(point, wd_xt @ d_x, N)
         U[unseen] = np.eye(3)
         W = wd_xt @ d_c  # (T, 3, c)
-        g_x = _sum_rows(point, np.einsum("tai,ta->ti", d_x, wr), N)
+        g_x = _sum_by(point, np.einsum("tai,ta->ti", d_x, wr), N)
         g_c = np.bincount(structure.cols.ravel(), minlength=structure.size,
                           weights=np.einsum("taj,ta->tj", d_c, wr).ravel())
         V = np.bincount(structure.obs_index.ravel(), minlength=structure.size ** 2,
@@ -584,13 +586,6 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
             converged = True
             break
     return X, cameras, np.array(history), converged
-
-
-def _sum_rows(index, values, size):
-    flat = values.reshape(len(values), -1)
-    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=size)
-                    for c in range(flat.shape[1])], axis=1)
-    return out.reshape((size,) + values.shape[1:])
 
 
 def _schur_term(U_damped, W, structure, point):
@@ -631,7 +626,7 @@ def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
         dc = -cho_solve(cho_factor(S), rhs) if len(rhs) else rhs  # known cameras: none
     except np.linalg.LinAlgError:
         return None
-    coupling = _sum_rows(point, np.einsum("tic,tc->ti", W, dc[structure.cols]), len(U))
+    coupling = _sum_by(point, np.einsum("tic,tc->ti", W, dc[structure.cols]), len(U))
     dx = -np.einsum("nij,nj->ni", U_inv, g_x + coupling)
     # cost = sum of rho: the model's decrease is -g.d + lam d.D.d (g = J^T W r)
     predicted = float(-np.sum(g_x * dx) - g_c @ dc + lam * (np.sum(D_x * dx ** 2) + D_c @ dc ** 2))

@@ -222,6 +222,23 @@ def _scale(z: np.ndarray) -> float:
     return float(np.sqrt(np.mean(z ** 2))) or 1.0
 
 
+_UPPER = np.triu_indices(3)
+_HALVE = np.where(_UPPER[0] == _UPPER[1], 2.0, 1.0)
+
+
+def _bilinear(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """a_k^T M b_k for each row k, as coefficients of M's upper triangle (symmetric M)."""
+    outer = np.einsum("ki,kj->kij", a, b)
+    return (outer + outer.transpose(0, 2, 1))[:, _UPPER[0], _UPPER[1]] / _HALVE
+
+
+def _symmetric(m: np.ndarray) -> np.ndarray:
+    """The symmetric 3x3 matrix with upper triangle ``m``."""
+    M = np.zeros((3, 3))
+    M[_UPPER] = m
+    return M + M.T - np.diag(np.diag(M))
+
+
 def metric_upgrade(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """From an affine to a metric reconstruction (step 3).
 
@@ -232,24 +249,14 @@ def metric_upgrade(X: np.ndarray, L: np.ndarray) -> tuple[np.ndarray, np.ndarray
     positive definite by construction, instead of clipping M's negative
     eigenvalues (which stretched the cloud to 10^6 times its size).
     """
-    iu = np.triu_indices(3)
-    halve = np.where(iu[0] == iu[1], 2.0, 1.0)
-
-    def row(a, b):  # a^T M b as coefficients of M's upper triangle
-        outer = np.einsum("ki,kj->kij", a, b)
-        return (outer + outer.transpose(0, 2, 1))[:, iu[0], iu[1]] / halve
-
     l1, l2 = L[:, :, 0], L[:, :, 1]
-    system = np.concatenate([row(l1, l1), row(l2, l2), row(l1, l2)])
+    system = np.concatenate([_bilinear(l1, l1), _bilinear(l2, l2), _bilinear(l1, l2)])
     target = np.concatenate([np.ones(len(L)), np.ones(len(L)), np.zeros(len(L))])
     m, _, rank, _ = np.linalg.lstsq(system, target, rcond=None)
     if rank < 6 and len(L) > 2:  # with 2 views, check_geometry has said so already
         warn(f"the metric upgrade is ambiguous (rank {rank} of 6): the views' directions "
              "do not fix the shape's proportions")
-    M = np.zeros((3, 3))
-    M[iu] = m
-    M = M + M.T - np.diag(np.diag(M))
-    values, vectors = np.linalg.eigh(M)
+    values, vectors = np.linalg.eigh(_symmetric(m))
     if values[0] > 0:
         A = vectors * np.sqrt(values)
     else:
@@ -295,25 +302,15 @@ def metric_upgrade_pd(L: np.ndarray) -> np.ndarray:
 
 def _linear_upgrade(L: np.ndarray) -> np.ndarray | None:
     """The Cholesky factor of the linear least-squares M, when it is positive definite."""
-    iu = np.triu_indices(3)
-    halve = np.where(iu[0] == iu[1], 2.0, 1.0)
-
-    def coefficients(a, b):
-        outer = np.einsum("ki,kj->kij", a, b)
-        return (outer + outer.transpose(0, 2, 1))[:, iu[0], iu[1]] / halve
-
     l1, l2 = L[:, :, 0], L[:, :, 1]
+    p, q = _bilinear(l1, l1), _bilinear(l2, l2)
     # equal lengths and orthogonal rows, and the mean squared length fixed to 1
-    system = np.concatenate([coefficients(l1, l1) - coefficients(l2, l2), coefficients(l1, l2),
-                             (coefficients(l1, l1) + coefficients(l2, l2)).mean(0, keepdims=True)])
+    system = np.concatenate([p - q, _bilinear(l1, l2), (p + q).mean(0, keepdims=True)])
     target = np.zeros(len(system))
     target[-1] = 2.0
     m = np.linalg.lstsq(system, target, rcond=None)[0]
-    M = np.zeros((3, 3))
-    M[iu] = m
-    M = M + M.T - np.diag(np.diag(M))
     try:
-        return np.linalg.cholesky(M)
+        return np.linalg.cholesky(_symmetric(m))
     except np.linalg.LinAlgError:
         return None
 
