@@ -25,9 +25,11 @@ cannot blow up:
    one scale for all views, ``perspective`` from it at several focal lengths
    and in both depth orders, the one with the lowest error kept.
 
-Wrong matches are peeled off against a robust residual scale (the median
-residual length) and the problem solved again, until none is left
-(:func:`_without_outliers`).
+Wrong matches are first suspected two views at a time, before any fit
+(:mod:`.epipolar`), and left out of it; then peeled off against a robust
+residual scale (the median residual length) and the problem solved again,
+until none is left (:func:`_without_outliers`); last, the suspects that the
+final fit explains are taken back (:func:`_readmitted`).
 """
 
 from __future__ import annotations
@@ -46,6 +48,7 @@ from mpe3d.errors import MpeError
 from .base import Observations
 from .cameras import CAMERAS, MATRIX, Cameras, affine_cameras, known_matrices
 from .degenerate import warn
+from .epipolar import epipolar_outliers
 from .factorize import _stacked, _sum_by, affine_als, metric_upgrade_pd
 from .linalg import elongation
 from .stress import project_rows
@@ -184,7 +187,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     if loss not in LOSSES:
         raise MpeError(f"loss: expected one of {', '.join(LOSSES)}, got {loss!r}")
     solve = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
-    used = _informative(tracks, np.ones(len(tracks.view), dtype=bool))
+    flagged = _epipolar_flags(tracks, outlier_threshold)
+    used = _informative(tracks, ~flagged)
     fit, affine_rms = _scaled(tracks.subset(used), solve)
     # The models are compared on the same observations, before any is dropped:
     # a weak-perspective misfit of perspective data is no wrong match.
@@ -195,10 +199,10 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     wanted = ("scaled", "perspective") if camera == "auto" else (camera,)
     others = {"orthographic": ("scaled", "perspective"), "scaled": ("perspective",),
               "perspective": ("scaled",)}
+    models = dict(principal_point=principal_point, shared_focal=shared_focal, solve=solve)
     for model in dict.fromkeys(wanted + ((), others.get(camera, ()))[not exact]):  # + checks
         if model not in fits:
-            fits[model] = (_orthographic if model == "orthographic" else _perspective)(
-                *fit[:2], tracks.subset(used), principal_point, shared_focal, solve)
+            fits[model] = _from_scaled(model, fit, tracks.subset(used), **models)
     rms = {model: _rms_of(f, tracks, used) for model, f in fits.items()}
     # the models are judged by their median residual, which wrong matches do not sway
     median = {model: _median_of(f, tracks, used) for model, f in fits.items()}
@@ -209,9 +213,17 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
         camera = "perspective" if median["perspective"] < AUTO_RATIO * median["scaled"] \
             else "scaled"
     _say_if_the_data_disagree(camera, median)
-    fit, dropped = _without_outliers(fits[camera], tracks, np.zeros(len(used), dtype=bool),
-                                     outlier_threshold, solve)
+    fit, dropped = _without_outliers(fits[camera], tracks, flagged, outlier_threshold, solve)
+    fit, dropped = _readmitted(fit, tracks, dropped, flagged, outlier_threshold, solve)
     return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms)
+
+
+def _from_scaled(model, scaled, tracks, principal_point, shared_focal, solve):
+    """The fit of ``model`` from the scaled fit (itself if ``model`` is scaled)."""
+    if model == "scaled":
+        return scaled
+    return (_orthographic if model == "orthographic" else _perspective)(
+        *scaled[:2], tracks, principal_point, shared_focal, solve)
 
 
 def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms) -> BundleResult:
@@ -329,6 +341,30 @@ def _median_of(fit, tracks, kept) -> float:
 
 def _rms_of(fit, tracks, kept) -> float:
     return float(np.sqrt(np.mean(_lengths(*fit[:2], tracks, kept) ** 2)))
+
+
+def _epipolar_flags(tracks, threshold) -> np.ndarray:
+    """(T,) bool: the likely wrong matches that two views at a time show, before
+    any fit (:mod:`.epipolar`); none when wrong matches are not looked for."""
+    if not np.isfinite(threshold):
+        return np.zeros(len(tracks.view), dtype=bool)
+    return epipolar_outliers(tracks.view, tracks.point, tracks.z, tracks.n_views,
+                             tracks.n_points, floor=1e-5 * _image_size(tracks))
+
+
+def _readmitted(fit, tracks, dropped, flagged, threshold, solve):
+    """The fit solved again with the ``flagged`` observations that it explains
+    after all (within ``threshold`` robust sigmas) taken back: the two-view
+    test flags before any fit, and a flag is only a suspicion."""
+    if not flagged.any():
+        return fit, dropped
+    X, cameras = fit[:2]
+    tau = threshold * _sigma(X, cameras, tracks, _informative(tracks, ~dropped))
+    back = flagged & dropped & (_lengths(X, cameras, tracks) <= tau)
+    if not back.any():
+        return fit, dropped
+    dropped = dropped & ~back
+    return adjust(X, cameras, tracks.subset(_informative(tracks, ~dropped)), **solve), dropped
 
 
 def _without_outliers(fit, tracks, dropped, threshold, solve):

@@ -1,0 +1,102 @@
+"""Wrong matches found before any 3D fit: two-view affine epipolar consensus.
+
+A wrong match dominates a least-squares fit (dino, 3% of the observations
+swapped for another point's: 80 residuals of ~150 px outweigh 2,500 of ~1 px
+a thousand times in squared error), so no fit that starts from least squares
+can be trusted to point at it. Two views alone can: under an affine camera the
+matches (z_k, z_j) of two views lie on a hyperplane of R^4 (the affine
+epipolar constraint, Hartley & Zisserman section 14.2), whatever the 3D shape,
+and a robust fit of that hyperplane (RANSAC, MSAC scoring, then total least
+squares on the inliers) flags the pairs far from it. An observation is taken
+for a wrong match when most of the view pairs that test it flag it: a wrong
+match in view k is far from the hyperplane of every pair (k, j), a right one
+only in the pair with the wrong one.
+
+Perspective views are near-affine over two views at a time, and the
+threshold is in robust sigmas of each pair's own residuals, so their misfit
+is not flagged; a wrong match along its epipolar line escapes, and is left
+to the peeling after the fit (:func:`.bundle._without_outliers`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.sparse import csr_matrix
+
+SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged
+MIN_COMMON = 12  # points two views must share to be tested together
+PARTNERS = 8  # views tested with each view: those sharing the most points with it
+TRIALS = 100  # RANSAC samples per pair
+_SCORED = 2000  # matches a sample is scored on (all of them for smaller pairs)
+_MAD = 0.6745  # median |r| / sigma for Gaussian r
+
+
+def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_views: int,
+                      n_points: int, *, sigmas: float = SIGMAS, floor: float = 0.0,
+                      seed: int = 0) -> np.ndarray:
+    """(T,) bool: the observations that most of their view pairs flag as off the
+    pair's affine epipolar hyperplane, by more than ``sigmas`` robust sigmas
+    (and more than ``floor`` pixels). Observations tested by fewer than two
+    pairs (a point seen twice) are never flagged."""
+    rows = csr_matrix((np.arange(1, len(view) + 1), (view, point)), shape=(n_views, n_points))
+    rows = rows.toarray() if n_views * n_points <= 50_000_000 else rows  # row index + 1
+    flags, tests = np.zeros(len(view)), np.zeros(len(view))
+    rng = np.random.default_rng(seed)
+    for k, j in _pairs(view, point, n_views, n_points):
+        a, b = _row(rows, k), _row(rows, j)
+        both = (a > 0) & (b > 0)
+        ta, tb = a[both] - 1, b[both] - 1
+        far = _off_hyperplane(np.hstack([z[ta], z[tb]]), sigmas, floor, rng)
+        np.add.at(flags, ta, far)
+        np.add.at(flags, tb, far)
+        np.add.at(tests, ta, 1)
+        np.add.at(tests, tb, 1)
+    return (tests >= 2) & (flags > tests / 2)
+
+
+def _row(rows, k) -> np.ndarray:
+    return rows[k] if isinstance(rows, np.ndarray) else rows[k].toarray().ravel()
+
+
+def _pairs(view, point, n_views, n_points):
+    """The view pairs tested: each view with the PARTNERS views sharing the most
+    points with it, if they share at least MIN_COMMON."""
+    seen = csr_matrix((np.ones(len(view)), (view, point)), shape=(n_views, n_points))
+    common = (seen @ seen.T).toarray()
+    np.fill_diagonal(common, 0)
+    best = np.argsort(-common, axis=1, kind="stable")[:, :PARTNERS]
+    pairs = {(min(k, j), max(k, j)) for k in range(n_views) for j in best[k]
+             if common[k, j] >= MIN_COMMON}
+    return sorted(pairs)
+
+
+def _off_hyperplane(q: np.ndarray, sigmas: float, floor: float, rng) -> np.ndarray:
+    """(n,) bool: the rows of q (n, 4) far from the robust hyperplane through them."""
+    n = len(q)
+    centre = np.median(q, axis=0)
+    scale = np.median(np.abs(q - centre)) or 1.0
+    q = (q - centre) / scale  # conditioned: the null vectors below are of O(1) rows
+    scored = q if n <= _SCORED else q[rng.choice(n, _SCORED, replace=False)]
+    samples = rng.integers(0, n, size=(TRIALS, 4))  # a repeated row gives a bad plane: harmless
+    homogeneous = np.concatenate([q[samples], np.ones((TRIALS, 4, 1))], axis=2)  # (S, 4, 5)
+    planes = np.linalg.svd(homogeneous)[2][:, -1]  # (S, 5): normal and offset
+    norms = np.linalg.norm(planes[:, :4], axis=1)
+    ok = norms > 1e-12
+    planes = planes[ok] / norms[ok, None]
+    distance = np.abs(scored @ planes[:, :4].T + planes[:, 4])  # (n', S)
+    # MSAC with each sample's own robust scale: the plane that most rows lie close to
+    sigma = np.maximum(np.median(distance, axis=0) / _MAD, 1e-12)
+    cost = np.minimum(distance / sigma, sigmas).sum(axis=0) + len(scored) * np.log(sigma)
+    plane = planes[np.argmin(cost)]
+    for _ in range(3):  # total least squares on the rows close to it
+        distance = np.abs(q @ plane[:4] + plane[4])
+        sigma = max(np.median(distance) / _MAD, 1e-12)
+        near = distance <= sigmas * sigma
+        if near.sum() < 5:
+            break
+        mean = q[near].mean(axis=0)
+        normal = np.linalg.svd(q[near] - mean, full_matrices=False)[2][-1]
+        plane = np.append(normal, -normal @ mean)
+    distance = np.abs(q @ plane[:4] + plane[4])
+    sigma = np.median(distance) / _MAD
+    return (distance > sigmas * sigma) & (distance * scale > floor)

@@ -1,0 +1,79 @@
+"""Wrong matches found two views at a time, before any 3D fit."""
+import numpy as np
+import pandas as pd
+import pytest
+
+from mpe3d.solvers import bundle
+from mpe3d.solvers.cameras import affine_cameras, exp_so3
+from mpe3d.solvers.epipolar import epipolar_outliers
+
+from .helpers import SHARED
+
+N, K = 120, 8
+
+
+def _scene(rng, model="scaled", noise=0.5):
+    X = rng.standard_normal((N, 3)) * 100
+    R = exp_so3(0.6 * rng.standard_normal((K, 3)))
+    cameras = affine_cameras(model, R[:, :2], np.exp(0.2 * rng.standard_normal(K)),
+                             320 + 20 * rng.standard_normal((K, 2)), focal=1500.0,
+                             principal_point=[320.0, 240.0])
+    view, point = np.repeat(np.arange(K), N), np.tile(np.arange(N), K)
+    seen = rng.random(len(view)) < 0.8
+    view, point = view[seen], point[seen]
+    z = cameras.project(X, view, point) + noise * rng.standard_normal((len(view), 2))
+    return view, point, z
+
+
+def _swap(view, z, share, rng):
+    """A share of the observations replaced by another point's in the same view, and
+    the mask of those that moved."""
+    swapped = z.copy()
+    for row in rng.choice(len(z), int(share * len(z)), replace=False):
+        swapped[row] = z[rng.choice(np.flatnonzero(view == view[row]))]
+    return swapped, np.linalg.norm(swapped - z, axis=1) > 0
+
+
+@pytest.mark.parametrize("model", ["scaled", "perspective"])
+def test_wrong_matches_are_flagged_and_right_ones_are_not(model, rng):
+    view, point, z = _scene(rng, model)
+    clean = epipolar_outliers(view, point, z, K, N)
+    if model == "scaled":  # affine views of noisy tracks: nothing is suspected
+        assert not clean.any()
+    else:  # a pinhole's misfit of the two-view affine test: a few suspicions, all taken back
+        assert clean.mean() <= 0.01
+        assert not bundle.bundle_adjust(bundle.Tracks(view, point, z, N, K), model).dropped.any()
+    corrupted, wrong = _swap(view, z, 0.03, rng)
+    far = wrong & (np.linalg.norm(corrupted - z, axis=1) > 20)  # a swap to a near point is no test
+    flagged = epipolar_outliers(view, point, corrupted, K, N)
+    assert np.sum(flagged & far) >= 0.9 * far.sum()
+    assert np.sum(flagged & ~wrong) <= 1
+
+
+def test_points_seen_twice_are_never_flagged(rng):
+    view, point, z = _scene(rng)
+    twice = np.flatnonzero(np.bincount(point) >= 2)[:1]
+    keep = (point != twice[0]) | (np.cumsum(point == twice[0]) <= 2)
+    view, point, z = view[keep], point[keep], z[keep].copy()
+    z[np.flatnonzero(point == twice[0])[0]] += 300.0
+    flagged = epipolar_outliers(view, point, z, K, N)
+    assert not flagged[point == twice[0]].any()
+
+
+def test_on_dino_with_three_percent_wrong_matches_most_are_flagged_before_the_fit():
+    path = SHARED / "realdata" / "dino" / "keypoints.csv"
+    if not path.exists():
+        pytest.skip(f"{path} is absent (the real tracks live beside the repo)")
+    frame = pd.read_csv(path).sort_values("view", kind="stable").reset_index(drop=True)
+    rng = np.random.default_rng(0)
+    z = frame[["x", "y"]].to_numpy(float)
+    view, point = frame["view"].to_numpy(), frame["point"].to_numpy()
+    _, point = np.unique(point, return_inverse=True)
+    corrupted, wrong = _swap(view, z, 0.03, rng)
+    flagged = epipolar_outliers(view, point, corrupted, view.max() + 1, point.max() + 1)
+    assert flagged[wrong].mean() >= 0.9
+    assert not flagged[~wrong].any()
+    assert not epipolar_outliers(view, point, z, view.max() + 1, point.max() + 1).any()
+    # and the fit on the clean tracks is as it was: nothing of theirs is suspected
+    tracks = bundle.Tracks(view, point, z, point.max() + 1, view.max() + 1)
+    assert not bundle._epipolar_flags(tracks, bundle.OUTLIER_THRESHOLD).any()
