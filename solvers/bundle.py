@@ -199,10 +199,10 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     wanted = ("scaled", "perspective") if camera == "auto" else (camera,)
     others = {"orthographic": ("scaled", "perspective"), "scaled": ("perspective",),
               "perspective": ("scaled",)}
-    models = dict(principal_point=principal_point, shared_focal=shared_focal, solve=solve)
     for model in dict.fromkeys(wanted + ((), others.get(camera, ()))[not exact]):  # + checks
         if model not in fits:
-            fits[model] = _from_scaled(model, fit, tracks.subset(used), **models)
+            fits[model] = (_orthographic if model == "orthographic" else _perspective)(
+                *fit[:2], tracks.subset(used), principal_point, shared_focal, solve)
     rms = {model: _rms_of(f, tracks, used) for model, f in fits.items()}
     # the models are judged by their median residual, which wrong matches do not sway
     median = {model: _median_of(f, tracks, used) for model, f in fits.items()}
@@ -216,14 +216,6 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     fit, dropped = _without_outliers(fits[camera], tracks, flagged, outlier_threshold, solve)
     fit, dropped = _readmitted(fit, tracks, dropped, flagged, outlier_threshold, solve)
     return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms)
-
-
-def _from_scaled(model, scaled, tracks, principal_point, shared_focal, solve):
-    """The fit of ``model`` from the scaled fit (itself if ``model`` is scaled)."""
-    if model == "scaled":
-        return scaled
-    return (_orthographic if model == "orthographic" else _perspective)(
-        *scaled[:2], tracks, principal_point, shared_focal, solve)
 
 
 def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms) -> BundleResult:

@@ -38,24 +38,20 @@ def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_view
     pair's affine epipolar hyperplane, by more than ``sigmas`` robust sigmas
     (and more than ``floor`` pixels). Observations tested by fewer than two
     pairs (a point seen twice) are never flagged."""
-    rows = csr_matrix((np.arange(1, len(view) + 1), (view, point)), shape=(n_views, n_points))
-    rows = rows.toarray() if n_views * n_points <= 50_000_000 else rows  # row index + 1
+    by_view = np.split(np.argsort(view, kind="stable"),
+                       np.cumsum(np.bincount(view, minlength=n_views))[:-1])
     flags, tests = np.zeros(len(view)), np.zeros(len(view))
     rng = np.random.default_rng(seed)
     for k, j in _pairs(view, point, n_views, n_points):
-        a, b = _row(rows, k), _row(rows, j)
-        both = (a > 0) & (b > 0)
-        ta, tb = a[both] - 1, b[both] - 1
+        # the observations of the points both views see
+        _, ia, ib = np.intersect1d(point[by_view[k]], point[by_view[j]], return_indices=True)
+        ta, tb = by_view[k][ia], by_view[j][ib]
         far = _off_hyperplane(np.hstack([z[ta], z[tb]]), sigmas, floor, rng)
         np.add.at(flags, ta, far)
         np.add.at(flags, tb, far)
         np.add.at(tests, ta, 1)
         np.add.at(tests, tb, 1)
     return (tests >= 2) & (flags > tests / 2)
-
-
-def _row(rows, k) -> np.ndarray:
-    return rows[k] if isinstance(rows, np.ndarray) else rows[k].toarray().ravel()
 
 
 def _pairs(view, point, n_views, n_points):
