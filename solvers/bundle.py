@@ -46,12 +46,14 @@ from threadpoolctl import threadpool_limits
 from mpe3d.errors import MpeError
 
 from .base import Observations
+from . import incremental
 from .cameras import CAMERAS, MATRIX, Cameras, affine_cameras, known_matrices
 from .degenerate import warn
 from .epipolar import epipolar_outliers
 from .factorize import _stacked, _sum_by, affine_als, metric_upgrade_pd
 from .linalg import elongation
 from .stress import project_rows
+from .triangulation import dlt_rows, least_squares_points, robust_points
 
 LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 # Focal lengths tried from the weak-perspective start, in units of the image size.
@@ -66,6 +68,7 @@ _TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins 
 # along its long axis: the views leave its depth free.
 _ELONGATION = 20.0
 _OUTLIER_ROUNDS = 20
+_READMISSION_ROUNDS = 4
 _DENSE_Y = 4_000_000  # entries of the Schur factor Y below which it is made dense
 # In robust sigmas: real tracks have heavy tails (0.1% of VGG's verified house
 # and dino observations lie beyond 26-58 sigmas of a pinhole fit), while a
@@ -189,7 +192,11 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     solve = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
     flagged = _epipolar_flags(tracks, outlier_threshold)
     used = _informative(tracks, ~flagged)
-    fit, affine_rms = _scaled(tracks.subset(used), solve)
+    grown = incremental.incremental_start(tracks.subset(used), _finite(outlier_threshold))
+    if grown is not None and np.isfinite(outlier_threshold):  # its left-outs are suspects too
+        flagged[np.flatnonzero(used)[grown[2]]] = True
+        used = _informative(tracks, ~flagged)
+    fit, affine_rms = _scaled(tracks.subset(used), solve, None if grown is None else grown[:2])
     # The models are compared on the same observations, before any is dropped:
     # a weak-perspective misfit of perspective data is no wrong match.
     fits = {"scaled": fit}
@@ -214,7 +221,7 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
             else "scaled"
     _say_if_the_data_disagree(camera, median)
     fit, dropped = _without_outliers(fits[camera], tracks, flagged, outlier_threshold, solve)
-    fit, dropped = _readmitted(fit, tracks, dropped, flagged, outlier_threshold, solve)
+    fit, dropped = _readmitted(fit, tracks, dropped, outlier_threshold, solve)
     return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms)
 
 
@@ -250,7 +257,7 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
     sub = tracks.subset(used)
     if matrices.shape[1:] == (3, 4):
         cameras, frozen = known_matrices(matrices), None
-        A, b = _pinhole_rows(matrices, sub.view, sub.z)
+        A, b = dlt_rows(matrices, sub.view, sub.z)
     else:
         cameras = affine_cameras("orthographic", matrices, np.ones(len(matrices)),
                                  np.zeros((len(matrices), 2)))
@@ -259,11 +266,11 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
         # z = P x + t is linear in (x, t): alternate the two, from t = the view means
         A, b = matrices[sub.view], sub.z
         for _ in range(_TRANSLATION_SWEEPS):
-            X = _least_squares_points(A, b - cameras.params[sub.view, 3:5], sub)
+            X = least_squares_points(A, b - cameras.params[sub.view, 3:5], sub.point, sub.n_points)
             residual = sub.z - np.einsum("tij,tj->ti", A, X[sub.point])
             cameras.params[:, 3:5] = _mean_by_view(residual, sub)
     if cameras.model == MATRIX:
-        X = _least_squares_points(A, b, sub)
+        X = least_squares_points(A, b, sub.point, sub.n_points)
     fit = adjust(X, cameras, sub, **solve, frozen=frozen)
     fit, dropped = _without_outliers(fit, tracks, np.zeros(len(used), dtype=bool),
                                      outlier_threshold, {**solve, "frozen": frozen})
@@ -271,29 +278,17 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
                    else "orthographic", max_iter, float("nan"), {})
 
 
-def _pinhole_rows(P, view, z):
-    """The DLT: two linear equations A x = b per observation of a 3x4 camera."""
-    P = P[view]
-    A = P[:, :2, :3] - z[:, :, None] * P[:, 2:3, :3]
-    b = z * P[:, 2:3, 3] - P[:, :2, 3]
-    return A, b
-
-
-def _least_squares_points(A, b, tracks):
-    """x_i minimising sum_t ||A_t x_i - b_t||^2 over each point's observations."""
-    lhs = _sum_by(tracks.point, np.einsum("tai,taj->tij", A, A), tracks.n_points)
-    rhs = _sum_by(tracks.point, np.einsum("tai,ta->ti", A, b), tracks.n_points)
-    return np.einsum("nij,nj->ni", np.linalg.pinv(lhs), rhs)
-
-
-def _scaled(tracks, solve):
-    """The scaled fit from two affine starts: barely polished, and after some
-    sweeps. Which one reaches the lower minimum depends on the tracks, so each
-    is scouted for a few iterations and the better one solved to the end."""
+def _scaled(tracks, solve, grown=None):
+    """The scaled fit from two affine starts, barely polished and after some
+    sweeps, and from the ``grown`` (X, cameras) of :mod:`.incremental`. Which
+    one reaches the lowest minimum depends on the tracks, so each is scouted
+    for a few iterations and the best one solved to the end."""
     starts = []
     for sweeps in (1, 20):
         X, P, scale, t, affine_rms = weak_perspective_start(tracks, sweeps, solve["tol"])
         starts.append(((X, affine_cameras("scaled", P, scale, t)), affine_rms))
+    if grown is not None:
+        starts.append((grown, affine_rms))
     return _best_of(starts, tracks, solve)
 
 
@@ -344,19 +339,30 @@ def _epipolar_flags(tracks, threshold) -> np.ndarray:
                              tracks.n_points, floor=1e-5 * _image_size(tracks))
 
 
-def _readmitted(fit, tracks, dropped, flagged, threshold, solve):
-    """The fit solved again with the ``flagged`` observations that it explains
-    after all (within ``threshold`` robust sigmas) taken back: the two-view
-    test flags before any fit, and a flag is only a suspicion."""
-    if not flagged.any():
+def _readmitted(fit, tracks, dropped, threshold, solve):
+    """The fit after every point with dropped observations is triangulated again,
+    robustly, under its cameras (:func:`.triangulation.robust_points`), and
+    solved again with the observations it explains (within ``threshold``
+    robust sigmas) taken back and those it does not dropped, until that
+    changes nothing: a suspicion raised before the fit, or a drop made while a
+    wrong match still dragged its point, is not the final word."""
+    if not np.isfinite(threshold):
         return fit, dropped
-    X, cameras = fit[:2]
-    tau = threshold * _sigma(X, cameras, tracks, _informative(tracks, ~dropped))
-    back = flagged & dropped & (_lengths(X, cameras, tracks) <= tau)
-    if not back.any():
-        return fit, dropped
-    dropped = dropped & ~back
-    return adjust(X, cameras, tracks.subset(_informative(tracks, ~dropped)), **solve), dropped
+    for _ in range(_READMISSION_ROUNDS):
+        X, cameras = fit[:2]
+        tau = threshold * _sigma(X, cameras, tracks, _informative(tracks, ~dropped))
+        suspects = np.unique(tracks.point[dropped])
+        X, outlying = robust_points(X, cameras, tracks, suspects, tau)
+        again = np.where(np.isin(tracks.point, suspects), outlying, dropped)
+        if (again == dropped).all():
+            break
+        fit = adjust(X, cameras, tracks.subset(_informative(tracks, ~again)), **solve)
+        fit, dropped = _without_outliers(fit, tracks, again, threshold, solve)
+    return fit, dropped
+
+
+def _finite(threshold):
+    return threshold if np.isfinite(threshold) else OUTLIER_THRESHOLD
 
 
 def _without_outliers(fit, tracks, dropped, threshold, solve):

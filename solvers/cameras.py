@@ -185,19 +185,37 @@ class Cameras:
             d_view[:, :, 6] = d_f
         return d_x, d_view, d_shared
 
+    def projection_matrices(self) -> np.ndarray:
+        """(K, 3, 4): u ~ P [x; 1], with last row (0, 0, 0, 1) for the affine models."""
+        K = len(self.rotations)
+        if self.model == MATRIX:
+            return self.rotations
+        P = np.zeros((K, 3, 4))
+        P[:, 2, 3] = 1.0
+        if self.model == AFFINE:
+            P[:, :2, :3] = self.params[:, :6].reshape(K, 2, 3)
+            P[:, :2, 3] = self.params[:, 6:8]
+            return P
+        R = self.current_rotations()
+        if self.model == "perspective":
+            intrinsics = np.zeros((K, 3, 3))
+            intrinsics[:, 0, 0] = intrinsics[:, 1, 1] = self.focal()
+            intrinsics[:, :2, 2], intrinsics[:, 2, 2] = self.principal_point, 1.0
+            return intrinsics @ np.concatenate([R, self.params[:, 3:6, None]], axis=2)
+        P[:, :2, :3] = self.scale()[:, None, None] * R[:, :2]
+        P[:, :2, 3] = self.params[:, 3:5]
+        return P
+
     def matrices(self) -> list[dict]:
         """Each view's camera as plain numbers, for the report."""
         if self.model == MATRIX:
             return [{"P": P.tolist()} for P in self.rotations]
-        R = self.current_rotations()
+        R, P = self.current_rotations(), self.projection_matrices()
         out = []
         for k in range(len(R)):
             if self.model == "perspective":
-                Kmat = np.array([[self.focal()[k], 0, self.principal_point[0]],
-                                 [0, self.focal()[k], self.principal_point[1]], [0, 0, 1]])
-                P = Kmat @ np.hstack([R[k], self.params[k, 3:6, None]])
                 out.append({"focal_px": float(self.focal()[k]), "rotation": R[k].tolist(),
-                            "translation": self.params[k, 3:6].tolist(), "P": P.tolist()})
+                            "translation": self.params[k, 3:6].tolist(), "P": P[k].tolist()})
             else:
                 out.append({"scale": float(self.scale()[k]), "rotation": R[k].tolist(),
                             "translation_px": self.params[k, 3:5].tolist(),

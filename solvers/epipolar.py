@@ -46,7 +46,7 @@ def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_view
         # the observations of the points both views see
         _, ia, ib = np.intersect1d(point[by_view[k]], point[by_view[j]], return_indices=True)
         ta, tb = by_view[k][ia], by_view[j][ib]
-        far = _off_hyperplane(np.hstack([z[ta], z[tb]]), sigmas, floor, rng)
+        far = off_affine_subspace(np.hstack([z[ta], z[tb]]), sigmas=sigmas, floor=floor, rng=rng)
         np.add.at(flags, ta, far)
         np.add.at(flags, tb, far)
         np.add.at(tests, ta, 1)
@@ -66,33 +66,46 @@ def _pairs(view, point, n_views, n_points):
     return sorted(pairs)
 
 
-def _off_hyperplane(q: np.ndarray, sigmas: float, floor: float, rng) -> np.ndarray:
-    """(n,) bool: the rows of q (n, 4) far from the robust hyperplane through them."""
+def off_affine_subspace(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float = 0.0,
+                        rng=None) -> np.ndarray:
+    """(n,) bool: the rows of q (n, d) far from the robust 3D affine subspace through them.
+
+    Under affine cameras the stacked images of a point in m views lie on a 3D
+    affine subspace of R^2m (two views: a hyperplane of R^4), and so do the
+    pairs (x_i, z_i) of one view's points and images in R^5: one test serves
+    wrong matches between views, in a seed of views and in a resection. RANSAC
+    over samples of 4 rows, MSAC scoring with each sample's own robust scale,
+    then total least squares on the rows near the best; a row is far beyond
+    ``sigmas`` robust sigmas and ``floor`` (in q's units).
+    """
+    rng = np.random.default_rng(0) if rng is None else rng
     n = len(q)
     centre = np.median(q, axis=0)
     scale = np.median(np.abs(q - centre)) or 1.0
-    q = (q - centre) / scale  # conditioned: the null vectors below are of O(1) rows
+    q = (q - centre) / scale  # conditioned: distances of O(1)
     scored = q if n <= _SCORED else q[rng.choice(n, _SCORED, replace=False)]
-    samples = rng.integers(0, n, size=(TRIALS, 4))  # a repeated row gives a bad plane: harmless
-    homogeneous = np.concatenate([q[samples], np.ones((TRIALS, 4, 1))], axis=2)  # (S, 4, 5)
-    planes = np.linalg.svd(homogeneous)[2][:, -1]  # (S, 5): normal and offset
-    norms = np.linalg.norm(planes[:, :4], axis=1)
-    ok = norms > 1e-12
-    planes = planes[ok] / norms[ok, None]
-    distance = np.abs(scored @ planes[:, :4].T + planes[:, 4])  # (n', S)
-    # MSAC with each sample's own robust scale: the plane that most rows lie close to
+    samples = q[rng.integers(0, n, size=(TRIALS, 4))]  # a repeated row gives a bad fit: harmless
+    means = samples.mean(axis=1)
+    bases = np.linalg.svd(samples - means[:, None], full_matrices=False)[2][:, :3]  # (S, 3, d)
+    offsets = scored[None] - means[:, None]  # (S, n', d)
+    inside = np.einsum("snd,sjd->snj", offsets, bases)
+    distance = np.sqrt(np.maximum(np.sum(offsets ** 2, axis=2) - np.sum(inside ** 2, axis=2), 0)).T
     sigma = np.maximum(np.median(distance, axis=0) / _MAD, 1e-12)
     cost = np.minimum(distance / sigma, sigmas).sum(axis=0) + len(scored) * np.log(sigma)
-    plane = planes[np.argmin(cost)]
+    best = int(np.argmin(cost))
+    mean, basis = means[best], bases[best]
     for _ in range(3):  # total least squares on the rows close to it
-        distance = np.abs(q @ plane[:4] + plane[4])
-        sigma = max(np.median(distance) / _MAD, 1e-12)
-        near = distance <= sigmas * sigma
+        distance = _distance_to(q, mean, basis)
+        near = distance <= sigmas * max(np.median(distance) / _MAD, 1e-12)
         if near.sum() < 5:
             break
         mean = q[near].mean(axis=0)
-        normal = np.linalg.svd(q[near] - mean, full_matrices=False)[2][-1]
-        plane = np.append(normal, -normal @ mean)
-    distance = np.abs(q @ plane[:4] + plane[4])
+        basis = np.linalg.svd(q[near] - mean, full_matrices=False)[2][:3]
+    distance = _distance_to(q, mean, basis)
     sigma = np.median(distance) / _MAD
     return (distance > sigmas * sigma) & (distance * scale > floor)
+
+
+def _distance_to(q, mean, basis):
+    offset = q - mean
+    return np.linalg.norm(offset - (offset @ basis.T) @ basis, axis=1)
