@@ -58,6 +58,8 @@ def robust_points(X, cameras, tracks, points, tau, seed: int = 0):
     best = hypotheses[np.arange(len(points)), np.argmin(cost, axis=1)]
     for _ in range(_REFINEMENTS):
         inlier = _lengths(cameras, tracks, rows, owner, best) <= tau
+        if not inlier.any():  # no observation agrees with any other: nothing to refit
+            break
         A, b = dlt_rows(P, tracks.view[rows[inlier]], tracks.z[rows[inlier]])
         refit = least_squares_points(A, b, owner[inlier], len(points))
         enough = np.bincount(owner[inlier], minlength=len(points)) >= 2

@@ -71,9 +71,26 @@ def test_on_dino_with_three_percent_wrong_matches_most_are_flagged_before_the_fi
     _, point = np.unique(point, return_inverse=True)
     corrupted, wrong = _swap(view, z, 0.03, rng)
     flagged = epipolar_outliers(view, point, corrupted, view.max() + 1, point.max() + 1)
-    assert flagged[wrong].mean() >= 0.9
-    assert not flagged[~wrong].any()
-    assert not epipolar_outliers(view, point, z, view.max() + 1, point.max() + 1).any()
-    # and the fit on the clean tracks is as it was: nothing of theirs is suspected
+    assert flagged[wrong].mean() >= 0.95
+    assert flagged[~wrong].mean() <= 0.002
+    # on the clean tracks a few suspicions (0.1%), which the fit takes back
     tracks = bundle.Tracks(view, point, z, point.max() + 1, view.max() + 1)
-    assert not bundle._epipolar_flags(tracks, bundle.OUTLIER_THRESHOLD).any()
+    suspects = bundle._epipolar_flags(tracks, bundle.OUTLIER_THRESHOLD)
+    assert suspects.mean() <= 0.002
+    assert not bundle.bundle_adjust(tracks).dropped[suspects].any()
+
+
+def test_a_wrong_match_between_views_looking_the_same_way_is_flagged(rng):
+    """Views that all look nearly along one direction (a camera moving sideways):
+    the matches of two views lie near a plane of R^4, and a wrong match hides in
+    the hyperplane's third direction unless that plane is tested too."""
+    X = rng.standard_normal((N, 3)) * 100
+    R = exp_so3(0.02 * rng.standard_normal((K, 3)))
+    cameras = affine_cameras("scaled", R[:, :2], np.ones(K), 10 * rng.standard_normal((K, 2)))
+    view, point = np.repeat(np.arange(K), N), np.tile(np.arange(N), K)
+    z = cameras.project(X, view, point) + 0.3 * rng.standard_normal((len(view), 2))
+    corrupted, wrong = _swap(view, z, 0.03, rng)
+    far = wrong & (np.linalg.norm(corrupted - z, axis=1) > 20)
+    flagged = epipolar_outliers(view, point, corrupted, K, N)
+    assert np.sum(flagged & far) >= 0.9 * far.sum()
+    assert np.sum(flagged & ~wrong) <= 2
