@@ -31,7 +31,7 @@ from .cameras import affine_cameras
 from .epipolar import off_affine_subspace
 from .factorize import _fit_views, _rows_of, metric_upgrade_pd
 from .stress import project_rows
-from .triangulation import least_squares_points
+from .triangulation import least_squares_points, robust_points
 
 MIN_RESECTION = 6  # placed points a view must see to be resected
 # Views resected together: all those seeing at least this share of the most
@@ -74,8 +74,7 @@ def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6):
         _adjust_round(tracks, rows & ~left_out, X, P, s, t, CAUCHY_SIGMAS * sigma, tol)
         cameras = affine_cameras("scaled", P, s, t)
         sigma = bundle._sigma(X, cameras, tracks, rows)
-        length = np.where(rows, np.nan_to_num(bundle._lengths(X, cameras, tracks), nan=np.inf), 0)
-        left_out = length > max(threshold * sigma, floor)
+        left_out = _left_out(tracks, rows, X, cameras, max(threshold * sigma, floor))
         reach = np.bincount(tracks.view[placed[tracks.point]], minlength=K)
         reach[registered] = -1
         if reach.max() < MIN_RESECTION:
@@ -87,6 +86,21 @@ def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6):
         return None
     X[~placed] = X[placed].mean(axis=0)
     return X, affine_cameras("scaled", P, s, t), left_out
+
+
+def _left_out(tracks, rows, X, cameras, tau):
+    """(T,) bool: the observations ``rows`` beyond ``tau``, after the points with
+    any are triangulated again robustly (in place): a point placed from two
+    views, one of them a wrong match, follows it, and its right observations
+    in the views added later would be the ones left out."""
+    length = np.where(rows, np.nan_to_num(bundle._lengths(X, cameras, tracks), nan=np.inf), 0)
+    suspects = np.unique(tracks.point[length > tau])
+    if not len(suspects):
+        return length > tau
+    sub = tracks.subset(rows)
+    X[:] = robust_points(X, cameras, sub, suspects, tau)[0]
+    length[rows] = np.nan_to_num(bundle._lengths(X, cameras, sub), nan=np.inf)
+    return length > tau
 
 
 def _seed_views(seen):

@@ -1,0 +1,57 @@
+"""Points from known cameras: the linear triangulation and its robust form."""
+import numpy as np
+import pytest
+
+from mpe3d.solvers import bundle
+from mpe3d.solvers.cameras import affine_cameras, exp_so3
+from mpe3d.solvers.triangulation import dlt_rows, least_squares_points, robust_points
+
+N, K = 40, 6
+
+
+def _scene(model, rng, noise=0.0):
+    X = rng.standard_normal((N, 3)) * 100
+    R = exp_so3(0.5 * rng.standard_normal((K, 3)))
+    cameras = affine_cameras(model, R[:, :2], np.exp(0.2 * rng.standard_normal(K)),
+                             320 + 20 * rng.standard_normal((K, 2)), focal=1500.0,
+                             principal_point=[320.0, 240.0])
+    view, point = np.repeat(np.arange(K), N), np.tile(np.arange(N), K)
+    z = cameras.project(X, view, point) + noise * rng.standard_normal((len(view), 2))
+    return X, cameras, bundle.Tracks(view, point, z, N, K)
+
+
+@pytest.mark.parametrize("model", ["orthographic", "scaled", "perspective"])
+def test_every_camera_model_triangulates_exactly_from_its_matrices(model, rng):
+    X, cameras, tracks = _scene(model, rng)
+    A, b = dlt_rows(cameras.projection_matrices(), tracks.view, tracks.z)
+    np.testing.assert_allclose(least_squares_points(A, b, tracks.point, N), X, atol=1e-8)
+
+
+@pytest.mark.parametrize("model", ["scaled", "perspective"])
+def test_a_point_that_followed_a_wrong_match_goes_back_to_the_right_ones(model, rng):
+    X, cameras, tracks = _scene(model, rng, noise=0.3)
+    wrong = np.flatnonzero(tracks.point == 7)[2]
+    tracks.z[wrong] += [120.0, -80.0]
+    # the point where a least-squares fit over its observations puts it
+    mine = tracks.point == 7
+    A, b = dlt_rows(cameras.projection_matrices(), tracks.view[mine], tracks.z[mine])
+    dragged = X.copy()
+    dragged[7] = least_squares_points(A, b, np.zeros(mine.sum(), dtype=int), 1)[0]
+    moved, outlying = robust_points(dragged, cameras, tracks, np.array([7]), tau=5.0)
+    assert np.linalg.norm(moved[7] - X[7]) < 1.0 < np.linalg.norm(dragged[7] - X[7])
+    assert np.flatnonzero(outlying).tolist() == [wrong]
+    assert np.array_equal(np.delete(moved, 7, axis=0), np.delete(dragged, 7, axis=0))
+
+
+def test_a_right_point_stays_near_and_nothing_of_it_is_outlying(rng):
+    X, cameras, tracks = _scene("perspective", rng, noise=0.3)
+    moved, outlying = robust_points(X, cameras, tracks, np.array([3, 5]), tau=5.0)
+    assert np.abs(moved - X).max() < 1.0 and not outlying.any()
+
+
+def test_observations_that_all_disagree_leave_the_point_alone(rng):
+    X, cameras, tracks = _scene("scaled", rng)
+    mine = np.flatnonzero(tracks.point == 2)
+    tracks.z[mine] += rng.uniform(-400, 400, (len(mine), 2))
+    moved, outlying = robust_points(X, cameras, tracks, np.array([2]), tau=1.0)
+    assert np.all(np.isfinite(moved)) and outlying[mine].all()
