@@ -1,6 +1,6 @@
 """mpe3d reconstruct on real feature tracks, one JSON line per data set x camera model.
 
-    python benchmarks/realdata.py [--data ../shared/realdata] [--wrong 0.03] [--noise]
+    python benchmarks/realdata.py [--data ../shared/realdata] [--wrong 0.03] [--seeds 5] [--noise]
 
 The tracks are ``../shared/realdata/{house,dino,backyard}/keypoints.csv`` (real
 images, perspective cameras; never shipped with the package). Each line gives
@@ -11,8 +11,9 @@ RMS 3D error after a similarity alignment to VGG's points, as a share of their
 bounding-box diagonal.
 
 Then, per data set, a share ``--wrong`` of the observations is replaced by
-another point's observation in the same view (wrong matches), and the error on
-the clean observations is compared with the clean-data result.
+another point's observation in the same view (wrong matches), ``--seeds``
+times, and the error on the clean observations is compared with the
+clean-data result (the median and the worst ratio over the seeds).
 
 ``--noise`` adds the "never silently broken" check: factorize and refine
 under the paper's distance noise (N=1024, 5 shapes, 2 amplitudes, 3 fractions),
@@ -105,30 +106,39 @@ def tracks_of(frame: pd.DataFrame):
     return bundle.Tracks.from_observations(obs), index
 
 
-def outlier_line(name: str, frame: pd.DataFrame, share: float) -> dict:
-    """The pinhole fit (what camera='auto' keeps on all three) of clean and of
-    corrupted tracks, the latter scored on the observations left clean."""
+def outlier_line(name: str, frame: pd.DataFrame, share: float, seeds: int) -> dict:
+    """The default fit (camera='auto') of clean and of corrupted tracks, the
+    latter scored on the observations left clean, over ``seeds`` corruptions."""
     from mpe3d.solvers import bundle
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         clean = bundle.bundle_adjust(tracks_of(frame)[0], "auto")
-        corrupted, changed = wrong_matches(frame, share)
-        tracks, index = tracks_of(corrupted)
-        start = time.perf_counter()
-        bad = bundle.bundle_adjust(tracks, "auto")
-        wall = time.perf_counter() - start
+        clean_rms = clean.rms(np.ones(len(clean.residuals), dtype=bool))
+        runs = [_corrupted_run(frame, share, seed, clean_rms) for seed in range(seeds)]
+    ratios = [run["ratio"] for run in runs]
+    return {"benchmark": "realdata_wrong_matches", "data": name, "share": share,
+            "clean_data_rms_px_all": round(clean_rms, 4), "runs": runs,
+            "ratio_median": float(np.median(ratios)), "ratio_worst": max(ratios),
+            "wall_s_worst": max(run["wall_s"] for run in runs),
+            "target": "ratio <= 1.1 (dino), every seed", "within_target": max(ratios) <= 1.1}
+
+
+def _corrupted_run(frame, share, seed, clean_rms):
+    from mpe3d.solvers import bundle
+
+    corrupted, changed = wrong_matches(frame, share, seed)
+    tracks, index = tracks_of(corrupted)
+    start = time.perf_counter()
+    bad = bundle.bundle_adjust(tracks, "auto")
+    wall = time.perf_counter() - start
     intact = np.zeros(len(tracks.view), dtype=bool)
     intact[index[~changed]] = True
-    clean_rms = clean.rms(np.ones(len(clean.residuals), dtype=bool))
     on_clean = bad.rms(intact)
-    return {"benchmark": "realdata_wrong_matches", "data": name, "share": share,
-            "wrong": int(changed.sum()), "caught": int(np.sum(bad.dropped & ~intact)),
-            "clean_dropped": int(np.sum(bad.dropped & intact)),
-            "clean_data_rms_px_all": round(clean_rms, 4),
+    return {"seed": seed, "wrong": int(changed.sum()), "caught": int(np.sum(bad.dropped & ~intact)),
+            "clean_dropped": int(np.sum(bad.dropped & intact)), "camera": bad.camera,
             "clean_observations_rms_px": round(on_clean, 4),
-            "ratio": round(on_clean / clean_rms, 3), "wall_s": round(wall, 2),
-            "target": "ratio <= 1.1 (dino)", "within_target": bool(on_clean <= 1.1 * clean_rms)}
+            "ratio": round(on_clean / clean_rms, 3), "wall_s": round(wall, 2)}
 
 
 def noise_lines():
@@ -163,6 +173,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", default=str(Path(__file__).resolve().parents[2] / "shared" / "realdata"))
     parser.add_argument("--wrong", type=float, default=0.03)
+    parser.add_argument("--seeds", type=int, default=5, help="corruptions per data set")
     parser.add_argument("--noise", action="store_true")
     args = parser.parse_args()
     root = Path(args.data)
@@ -173,7 +184,7 @@ def main() -> None:
             truth = pd.read_csv(root / name / "gt_points.csv").sort_values("id")[["x", "y", "z"]].to_numpy()
         for camera in CAMERAS:
             print(json.dumps(model_line(name, frame, camera, truth)), flush=True)
-        print(json.dumps(outlier_line(name, frame, args.wrong)), flush=True)
+        print(json.dumps(outlier_line(name, frame, args.wrong, args.seeds)), flush=True)
     if args.noise:
         for line in noise_lines():
             print(json.dumps(line), flush=True)

@@ -99,26 +99,24 @@ def off_affine_subspace(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float =
     scored = q if n <= _SCORED else q[rng.choice(n, _SCORED, replace=False)]
     samples = q[rng.integers(0, n, size=(TRIALS, dim + 1))]  # a repeated row gives a bad fit: harmless
     means = samples.mean(axis=1)
-    bases = np.linalg.svd(samples - means[:, None], full_matrices=False)[2][:, :dim]  # (S, dim, d)
-    offsets = scored[None] - means[:, None]  # (S, n', d)
-    inside = np.einsum("snd,sjd->snj", offsets, bases)
-    distance = np.sqrt(np.maximum(np.sum(offsets ** 2, axis=2) - np.sum(inside ** 2, axis=2), 0)).T
+    centred = samples - means[:, None]
+    # distances through the complement, the scatter's d - dim directions of least
+    # spread (eigh: half the time of an SVD)
+    normals = np.linalg.eigh(centred.transpose(0, 2, 1) @ centred)[1][:, :, :q.shape[1] - dim]
+    normals = normals.transpose(0, 2, 1)  # (S, d - dim, d)
+    along = np.einsum("nd,scd->snc", scored, normals) - np.einsum("sd,scd->sc", means, normals)[:, None]
+    distance = np.linalg.norm(along, axis=2).T  # (n', S)
     sigma = np.maximum(np.median(distance, axis=0) / _MAD, 1e-12)
     cost = np.minimum(distance / sigma, sigmas).sum(axis=0) + len(scored) * np.log(sigma)
     best = int(np.argmin(cost))
-    mean, basis = means[best], bases[best]
+    mean, normal = means[best], normals[best]
     for _ in range(3):  # total least squares on the rows close to it
-        distance = _distance_to(q, mean, basis)
+        distance = np.linalg.norm((q - mean) @ normal.T, axis=1)
         near = distance <= sigmas * max(np.median(distance) / _MAD, 1e-12)
         if near.sum() < 5:
             break
         mean = q[near].mean(axis=0)
-        basis = np.linalg.svd(q[near] - mean, full_matrices=False)[2][:dim]
-    distance = _distance_to(q, mean, basis)
+        normal = np.linalg.svd(q[near] - mean)[2][dim:]
+    distance = np.linalg.norm((q - mean) @ normal.T, axis=1)
     sigma = np.median(distance) / _MAD
     return (distance > sigmas * sigma) & (distance * scale > floor)
-
-
-def _distance_to(q, mean, basis):
-    offset = q - mean
-    return np.linalg.norm(offset - (offset @ basis.T) @ basis, axis=1)
