@@ -97,6 +97,22 @@ def test_noise_free_pinhole_views_are_solved_exactly_with_their_focal_length(rng
     assert _similarity_error(result.points, truth) < 1e-8
 
 
+def test_a_point_seen_once_lands_on_its_ray_through_a_pinhole(rng):
+    """It has no depth, but its one image is data: it goes on the view's ray at
+    the cloud's depth, to within working precision (a single Gauss-Newton step
+    left it tens of pixels off through a short focal length)."""
+    cameras = _cameras("perspective", rng, focal=400.0)
+    _, tracks = _tracks(cameras, rng, keep=0.8)
+    lone = np.flatnonzero(tracks.point == 5)
+    rows = np.setdiff1d(np.arange(len(tracks.view)), lone[1:])  # point 5 kept in one view
+    z = tracks.z[rows].copy()
+    z[np.flatnonzero(tracks.point[rows] == 5)] += [60.0, -40.0]  # away from the centre's image
+    seen_once = bundle.Tracks(tracks.view[rows], tracks.point[rows], z, N, K)
+    result = bundle.bundle_adjust(seen_once, "perspective", principal_point=[320.0, 240.0])
+    assert not result.info["placed"][5]
+    assert np.abs(result.residuals[seen_once.point == 5]).max() < 1e-6
+
+
 def test_the_levenberg_marquardt_optimum_is_scipys(rng):
     """The Schur-complement solver stops where scipy's least_squares (sparse
     Jacobian, trust-region reflective) does, on noisy views."""
