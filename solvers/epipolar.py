@@ -99,11 +99,8 @@ def off_affine_subspace(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float =
     scored = q if n <= _SCORED else q[rng.choice(n, _SCORED, replace=False)]
     samples = q[rng.integers(0, n, size=(TRIALS, dim + 1))]  # a repeated row gives a bad fit: harmless
     means = samples.mean(axis=1)
-    centred = samples - means[:, None]
-    # distances through the complement, the scatter's d - dim directions of least
-    # spread (eigh: half the time of an SVD)
-    normals = np.linalg.eigh(centred.transpose(0, 2, 1) @ centred)[1][:, :, :q.shape[1] - dim]
-    normals = normals.transpose(0, 2, 1)  # (S, d - dim, d)
+    # distances are measured through the complement
+    normals = _least_spread(samples - means[:, None], dim)  # (S, d - dim, d)
     along = np.einsum("nd,scd->snc", scored, normals) - np.einsum("sd,scd->sc", means, normals)[:, None]
     distance = np.linalg.norm(along, axis=2).T  # (n', S)
     sigma = np.maximum(np.median(distance, axis=0) / _MAD, 1e-12)
@@ -116,7 +113,15 @@ def off_affine_subspace(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float =
         if near.sum() < 5:
             break
         mean = q[near].mean(axis=0)
-        normal = np.linalg.svd(q[near] - mean)[2][dim:]
+        normal = _least_spread(q[near] - mean, dim)
     distance = np.linalg.norm((q - mean) @ normal.T, axis=1)
     sigma = np.median(distance) / _MAD
     return (distance > sigmas * sigma) & (distance * scale > floor)
+
+
+def _least_spread(centred: np.ndarray, dim: int) -> np.ndarray:
+    """(..., d - dim, d): the directions of least spread of centred rows (..., n, d),
+    the eigenvectors of their scatter (half the time of an SVD, and d x d
+    whatever n)."""
+    scatter = np.swapaxes(centred, -1, -2) @ centred
+    return np.swapaxes(np.linalg.eigh(scatter)[1][..., :centred.shape[-1] - dim], -1, -2)

@@ -85,7 +85,10 @@ def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6):
     if not registered.all():
         return None
     X[~placed] = X[placed].mean(axis=0)
-    return X, affine_cameras("scaled", P, s, t), left_out
+    # the cloud in pixels at the views' mean scale, as the factorisation's start
+    # gives it: weak perspective leaves its size free, an orthographic camera not
+    norm = float(np.exp(np.mean(np.log(s))))
+    return X * norm, affine_cameras("scaled", P, s / norm, t), left_out
 
 
 def _left_out(tracks, rows, X, cameras, tau):

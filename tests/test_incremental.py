@@ -1,5 +1,8 @@
 """The incremental weak-perspective start: grown view by view, robust at each step."""
 import numpy as np
+import pytest
+
+from mpe3d.harness.metrics import roa
 
 from mpe3d.solvers import bundle
 from mpe3d.solvers.cameras import affine_cameras, exp_so3
@@ -8,19 +11,20 @@ from mpe3d.solvers.incremental import FLOOR, incremental_start
 N, K, WINDOW = 200, 24, 6
 
 
-def _turntable(rng, noise=0.5):
+def _turntable(rng, noise=0.5, zoom=0.1, truth=False):
     """K views around the y axis, 15 degrees apart, each point seen in WINDOW
     consecutive views: a long sequence with no track in every view."""
     X = rng.standard_normal((N, 3)) * np.array([100, 60, 100])
     angles = np.radians(15) * np.arange(K)
     R = exp_so3(np.column_stack([0.1 * np.ones(K), angles, np.zeros(K)]))
-    cameras = affine_cameras("scaled", R[:, :2], np.exp(0.1 * rng.standard_normal(K)),
+    cameras = affine_cameras("scaled", R[:, :2], np.exp(zoom * rng.standard_normal(K)),
                              300 + 10 * rng.standard_normal((K, 2)))
     first = rng.integers(0, K, N)
     view = (first[:, None] + np.arange(WINDOW)).ravel() % K
     point = np.repeat(np.arange(N), WINDOW)
     z = cameras.project(X, view, point) + noise * rng.standard_normal((len(view), 2))
-    return bundle.Tracks(view, point, z, N, K)
+    tracks = bundle.Tracks(view, point, z, N, K)
+    return (tracks, X) if truth else tracks
 
 
 def _swapped(tracks, share, rng):
@@ -38,6 +42,16 @@ def test_a_sequence_is_grown_to_every_view_at_the_noise_level(rng):
     length = bundle._lengths(X, cameras, tracks)
     # Rayleigh median of 0.5 px noise: 0.59 px; the start need not be polished
     assert np.median(length) < 1.2 and not left_out.any()
+
+
+def test_orthographic_views_give_the_cloud_at_its_own_size(rng):
+    """Weak perspective leaves the cloud's size free; the start puts it at the
+    views' mean scale, so orthographic views (scale 1) get the true cloud up to
+    a rotation, as the factorisation's start does."""
+    tracks, truth = _turntable(rng, noise=0.0, zoom=0.0, truth=True)
+    X, cameras, _ = incremental_start(tracks)
+    assert np.exp(np.mean(np.log(cameras.scale()))) == pytest.approx(1.0)
+    assert roa(X, truth) < 1e-6 * np.ptp(truth, axis=0).max()
 
 
 def test_wrong_matches_neither_bend_the_start_nor_stay_in_it(rng):
