@@ -280,21 +280,34 @@ def metric_upgrade_pd(L: np.ndarray) -> np.ndarray:
     l1, l2 = L[:, :, 0], L[:, :, 1]
     rows, cols = np.tril_indices(3)
 
-    def residual(a):
+    def terms(a):
         A = np.zeros((3, 3))
         A[rows, cols] = a
         u, v = l1 @ A, l2 @ A
         p, q, r = np.sum(u * u, 1), np.sum(v * v, 1), np.sum(u * v, 1)
-        total = p + q + 1e-300
+        return A, u, v, p, q, r, p + q + 1e-300
+
+    def residual(a):
+        A, _, _, p, q, r, total = terms(a)
         return np.concatenate([(p - q) / total, 2 * r / total, [np.log(np.abs(np.diag(A))).sum()]])
+
+    def jacobian(a):
+        # analytic: with finite differences the fit took 600 evaluations on 100 views
+        _, u, v, p, q, r, total = terms(a)
+        dp, dq = 2 * u[:, cols] * l1[:, rows], 2 * v[:, cols] * l2[:, rows]  # (K, 6)
+        dr = u[:, cols] * l2[:, rows] + v[:, cols] * l1[:, rows]
+        dt = (dp + dq) / total[:, None]
+        diagonal = np.where(rows == cols, 1 / np.where(rows == cols, a, 1.0), 0.0)
+        return np.vstack([(dp - dq) / total[:, None] - ((p - q) / total)[:, None] * dt,
+                          2 * dr / total[:, None] - (2 * r / total)[:, None] * dt, diagonal])
 
     starts = [np.eye(3)[rows, cols]]
     linear = _linear_upgrade(L)
     if linear is not None:
         starts.insert(0, linear[rows, cols])
     method = "lm" if 2 * len(L) + 1 >= 6 else "trf"  # lm needs as many residuals as unknowns
-    best = min((least_squares(residual, a0, method=method, xtol=1e-15, ftol=1e-15, gtol=1e-15)
-                for a0 in starts), key=lambda r: r.cost)
+    best = min((least_squares(residual, a0, jac=jacobian, method=method, xtol=1e-15,
+                              ftol=1e-15, gtol=1e-15) for a0 in starts), key=lambda r: r.cost)
     A = np.zeros((3, 3))
     A[rows, cols] = best.x
     return A
