@@ -50,19 +50,20 @@ def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_view
     pairs (a point seen twice) are never flagged."""
     by_view = np.split(np.argsort(view, kind="stable"),
                        np.cumsum(np.bincount(view, minlength=n_views))[:-1])
-    flags, tests = np.zeros(len(view)), np.zeros(len(view))
-    rng = np.random.default_rng(seed)
+    tested = []
     for k, j in _pairs(view, point, n_views, n_points):
         # the observations of the points both views see
         _, ia, ib = np.intersect1d(point[by_view[k]], point[by_view[j]], return_indices=True)
-        ta, tb = by_view[k][ia], by_view[j][ib]
-        q = np.hstack([z[ta], z[tb]])
-        far = off_affine_subspace(q, sigmas=sigmas, floor=floor, rng=rng) \
-            | off_affine_subspace(q, sigmas=sigmas, floor=floor, rng=rng, dim=2)
-        np.add.at(flags, ta, far)
-        np.add.at(flags, tb, far)
-        np.add.at(tests, ta, 1)
-        np.add.at(tests, tb, 1)
+        tested.append((by_view[k][ia], by_view[j][ib]))
+    matches = [np.hstack([z[ta], z[tb]]) for ta, tb in tested]
+    rng = np.random.default_rng(seed)
+    far = [a | b for a, b in zip(*(off_affine_subspaces(matches, sigmas=sigmas, floor=floor,
+                                                        rng=rng, dim=dim) for dim in (3, 2)))]
+    flags, tests = np.zeros(len(view)), np.zeros(len(view))
+    for (ta, tb), f in zip(tested, far):
+        for t in (ta, tb):
+            np.add.at(flags, t, f)
+            np.add.at(tests, t, 1)
     return (tests >= 2) & (flags > tests / 2)
 
 
@@ -87,36 +88,95 @@ def off_affine_subspace(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float =
     affine subspace of R^2m (two views: a hyperplane of R^4), and so do the
     pairs (x_i, z_i) of one view's points and images in R^5: one test serves
     wrong matches between views, in a seed of views and in a resection. RANSAC
-    over samples of dim + 1 rows, MSAC scoring with each sample's own robust scale,
-    then total least squares on the rows near the best; a row is far beyond
-    ``sigmas`` robust sigmas and ``floor`` (in q's units).
+    over samples of dim + 1 rows, MSAC scoring with each sample's own robust
+    scale, then total least squares on the rows near the best; a row is far
+    beyond ``sigmas`` robust sigmas and ``floor`` (in q's units).
     """
+    return off_affine_subspaces([q], sigmas=sigmas, floor=floor, rng=rng, dim=dim)[0]
+
+
+def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0,
+                         rng=None, dim: int = 3) -> list:
+    """:func:`off_affine_subspace` of each (n_b, d) array of ``qs`` at once: the
+    arrays are padded to one (B, n, d) stack, because a two-view test of a long
+    sequence is hundreds of pairs of ~20 matches, where numpy's per-call cost
+    is most of the work (backyard: 1.0 s one pair at a time)."""
     rng = np.random.default_rng(0) if rng is None else rng
-    n = len(q)
-    centre = np.median(q, axis=0)
-    scale = np.median(np.abs(q - centre)) or 1.0
-    q = (q - centre) / scale  # conditioned: distances of O(1)
-    scored = q if n <= _SCORED else q[rng.choice(n, _SCORED, replace=False)]
-    samples = q[rng.integers(0, n, size=(TRIALS, dim + 1))]  # a repeated row gives a bad fit: harmless
-    means = samples.mean(axis=1)
-    # distances are measured through the complement
-    normals = _least_spread(samples - means[:, None], dim)  # (S, d - dim, d)
-    along = np.einsum("nd,scd->snc", scored, normals) - np.einsum("sd,scd->sc", means, normals)[:, None]
-    distance = np.linalg.norm(along, axis=2).T  # (n', S)
-    sigma = np.maximum(np.median(distance, axis=0) / _MAD, 1e-12)
-    cost = np.minimum(distance / sigma, sigmas).sum(axis=0) + len(scored) * np.log(sigma)
-    best = int(np.argmin(cost))
-    mean, normal = means[best], normals[best]
+    sizes = np.array([len(q) for q in qs])
+    buckets = np.ceil(np.log2(np.maximum(sizes, 1))).astype(int)  # pad to at most twice
+    if len(np.unique(buckets)) > 1:
+        far = [None] * len(qs)
+        for bucket in np.unique(buckets):
+            members = np.flatnonzero(buckets == bucket)
+            for i, f in zip(members, off_affine_subspaces([qs[i] for i in members], sigmas=sigmas,
+                                                          floor=floor, rng=rng, dim=dim)):
+                far[i] = f
+        return far
+    Q, valid = _padded(qs)
+    counts = valid.sum(axis=1)
+    centre = _masked_median(Q, valid[:, :, None], axis=1)
+    scale = _masked_median(np.abs(Q - centre[:, None]).reshape(len(Q), -1),
+                           np.repeat(valid, Q.shape[2], axis=1), axis=1)
+    scale = np.where(scale > 0, scale, 1.0)
+    Q = (Q - centre[:, None]) / scale[:, None, None]  # conditioned: distances of O(1)
+    scored, scored_valid = _padded([q[rng.choice(len(q), _SCORED, replace=False)]
+                                    if len(q) > _SCORED else q for q in _unpadded(Q, counts)])
+    # a repeated row gives a bad fit: harmless
+    picks = (rng.random((len(Q), TRIALS, dim + 1)) * counts[:, None, None]).astype(int)
+    samples = np.take_along_axis(Q[:, None], picks[..., None], axis=2)  # (B, S, dim + 1, d)
+    means = samples.mean(axis=2)
+    normals = _least_spread(samples - means[:, :, None], dim)  # (B, S, d - dim, d)
+    along = np.einsum("bnd,bscd->bsnc", scored, normals) \
+        - np.einsum("bsd,bscd->bsc", means, normals)[:, :, None]
+    distance = np.linalg.norm(along, axis=3)  # (B, S, n)
+    mask = scored_valid[:, None]
+    sigma = np.maximum(_masked_median(distance, mask, axis=2) / _MAD, 1e-12)  # (B, S)
+    cost = np.where(mask, np.minimum(distance / sigma[..., None], sigmas), 0).sum(axis=2) \
+        + scored_valid.sum(axis=1)[:, None] * np.log(sigma)
+    best = np.argmin(cost, axis=1)
+    mean, normal = means[np.arange(len(Q)), best], normals[np.arange(len(Q)), best]
     for _ in range(3):  # total least squares on the rows close to it
-        distance = np.linalg.norm((q - mean) @ normal.T, axis=1)
-        near = distance <= sigmas * max(np.median(distance) / _MAD, 1e-12)
-        if near.sum() < 5:
-            break
-        mean = q[near].mean(axis=0)
-        normal = _least_spread(q[near] - mean, dim)
-    distance = np.linalg.norm((q - mean) @ normal.T, axis=1)
-    sigma = np.median(distance) / _MAD
-    return (distance > sigmas * sigma) & (distance * scale > floor)
+        distance = _distances(Q, mean, normal)
+        sigma = np.maximum(_masked_median(distance, valid, axis=1) / _MAD, 1e-12)
+        near = valid & (distance <= sigmas * sigma[:, None])
+        refit = near.sum(axis=1) >= 5  # too few near: keep the sample's fit
+        weight = near[:, :, None].astype(float)
+        centroid = (weight * Q).sum(axis=1) / np.maximum(weight.sum(axis=1), 1)
+        tls = _least_spread(weight * (Q - centroid[:, None]), dim)
+        mean = np.where(refit[:, None], centroid, mean)
+        normal = np.where(refit[:, None, None], tls, normal)
+    distance = _distances(Q, mean, normal)
+    sigma = _masked_median(distance, valid, axis=1) / _MAD
+    far = (distance > sigmas * sigma[:, None]) & (distance * scale[:, None] > floor)
+    return _unpadded(far, counts)
+
+
+def _padded(arrays):
+    """(B, n_max, ...) zero-padded stack and its (B, n_max) mask of real rows."""
+    n = np.array([len(a) for a in arrays])
+    stack = np.zeros((len(arrays), max(n.max(initial=0), 1)) + arrays[0].shape[1:])
+    valid = np.arange(stack.shape[1]) < n[:, None]
+    stack[valid] = np.concatenate(arrays)
+    return stack, valid
+
+
+def _unpadded(stack, counts):
+    return [row[:c] for row, c in zip(stack, counts)]
+
+
+def _masked_median(values, valid, axis):
+    """The median along ``axis`` of the entries where ``valid`` (broadcast to values)."""
+    valid = np.broadcast_to(valid, values.shape)
+    ordered = np.sort(np.where(valid, values, np.inf), axis=axis)
+    n = valid.sum(axis=axis, keepdims=True)
+    low = np.take_along_axis(ordered, np.maximum((n - 1) // 2, 0), axis=axis)
+    high = np.take_along_axis(ordered, n // 2, axis=axis)
+    return np.squeeze((low + high) / 2, axis=axis)
+
+
+def _distances(Q, mean, normal):
+    """(B, n): each row's distance to its stack's subspace (mean, complement)."""
+    return np.linalg.norm(np.einsum("bnd,bcd->bnc", Q - mean[:, None], normal), axis=2)
 
 
 def _least_spread(centred: np.ndarray, dim: int) -> np.ndarray:
