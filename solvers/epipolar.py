@@ -38,6 +38,7 @@ MIN_COMMON = 12  # points two views must share to be tested together
 PARTNERS = 8  # views tested with each view: those sharing the most points with it
 TRIALS = 100  # RANSAC samples per pair
 _SCORED = 2000  # matches a sample is scored on (all of them for smaller pairs)
+_STACKED = 256  # pairs with more matches are tested one at a time, not stacked
 _MAD = 0.6745  # median |r| / sigma for Gaussian r
 
 
@@ -104,6 +105,8 @@ def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0
     rng = np.random.default_rng(0) if rng is None else rng
     sizes = np.array([len(q) for q in qs])
     buckets = np.ceil(np.log2(np.maximum(sizes, 1))).astype(int)  # pad to at most twice
+    # large ones alone: numpy's overhead is nothing there, and unpadded medians partition
+    buckets = np.where(sizes > _STACKED, -1 - np.arange(len(qs)), buckets)
     if len(np.unique(buckets)) > 1:
         far = [None] * len(qs)
         for bucket in np.unique(buckets):
@@ -167,6 +170,8 @@ def _unpadded(stack, counts):
 def _masked_median(values, valid, axis):
     """The median along ``axis`` of the entries where ``valid`` (broadcast to values)."""
     valid = np.broadcast_to(valid, values.shape)
+    if valid.all():
+        return np.median(values, axis=axis)
     ordered = np.sort(np.where(valid, values, np.inf), axis=axis)
     n = valid.sum(axis=axis, keepdims=True)
     low = np.take_along_axis(ordered, np.maximum((n - 1) // 2, 0), axis=axis)
