@@ -15,21 +15,27 @@ Jacobian (trust-region reflective, LSMR) reaches the same optimum but took
 cannot blow up:
 
 1. an affine factorisation with missing data (:mod:`.factorize`), grown from
-   the best pair of views, from 1 and from 20 alternating sweeps, each scouted
-   and the better one kept;
-2. a metric upgrade that is positive definite by construction: M = A A^T
-   with A lower-triangular, fitted by least squares to the weak-perspective
+   the best pair of views, from 1 and from 20 alternating sweeps, with a
+   metric upgrade that is positive definite by construction: M = A A^T with
+   A lower-triangular, fitted by least squares to the weak-perspective
    conditions (each view's two rows orthogonal and of equal length) from
    the linear solution and from the identity, the better one kept;
-3. bundle adjustment of the ``scaled`` model; ``orthographic`` from it with
-   one scale for all views, ``perspective`` from it at several focal lengths
-   and in both depth orders, the one with the lowest error kept.
+2. an incremental reconstruction (:mod:`.incremental`), grown from three
+   views, robust at each step, which long sequences with missing data need
+   (the global factorisation folds dino's turntable when 80 observations
+   are removed);
+3. bundle adjustment of the ``scaled`` model from each start, scouted, the
+   best one solved to the end; ``orthographic`` from it with one scale for
+   all views, ``perspective`` from it at several focal lengths and in both
+   depth orders, the one with the lowest error kept.
 
-Wrong matches are first suspected two views at a time, before any fit
-(:mod:`.epipolar`), and left out of it; then peeled off against a robust
-residual scale (the median residual length) and the problem solved again,
-until none is left (:func:`_without_outliers`); last, the suspects that the
-final fit explains are taken back (:func:`_readmitted`).
+Wrong matches are first suspected before any fit, two views at a time
+(:mod:`.epipolar`) and by the incremental start, and left out of every fit;
+then peeled off against a robust residual scale (the median residual length)
+and the problem solved again, until none is left (:func:`_without_outliers`);
+last, the points with dropped observations are triangulated again robustly
+under the final cameras, and what the fit explains is taken back
+(:func:`_readmitted`).
 """
 
 from __future__ import annotations

@@ -15,7 +15,11 @@ views triangulated, and what is there bundle-adjusted. Each step is robust:
   so a wrong match left in does not pull, and the observations beyond
   ``threshold`` sigmas (and beyond ``FLOOR`` of the image, so that a pinhole
   scene's weak-perspective misfit is no wrong match) are left out of the
-  next round.
+  next round;
+- a point with left-out observations is triangulated again by RANSAC over
+  pairs of them (:func:`.triangulation.robust_points`): one placed from two
+  views, one of them a wrong match, follows it, and its right observations
+  in the views added later would be the ones left out.
 
 It returns the start and the observations it left out; those are suspects, as
 the two-view test's are (:func:`.bundle.bundle_adjust` takes back the ones its
@@ -93,9 +97,7 @@ def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6):
 
 def _left_out(tracks, rows, X, cameras, tau):
     """(T,) bool: the observations ``rows`` beyond ``tau``, after the points with
-    any are triangulated again robustly (in place): a point placed from two
-    views, one of them a wrong match, follows it, and its right observations
-    in the views added later would be the ones left out."""
+    any are triangulated again robustly (X in place)."""
     length = np.where(rows, np.nan_to_num(bundle._lengths(X, cameras, tracks), nan=np.inf), 0)
     suspects = np.unique(tracks.point[length > tau])
     if not len(suspects):
