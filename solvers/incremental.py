@@ -51,11 +51,13 @@ FLOOR = 0.05
 
 def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6):
     """(X, scaled cameras, left_out) grown from a seed of three views, or None
-    when no three views share 4 points or some view is never reached.
+    when there are fewer, no three share 4 points or some view is never reached.
 
     ``left_out`` (T,) marks the observations beyond ``threshold`` robust sigmas
     of the last round (and beyond ``FLOOR`` of the image)."""
     K, N = tracks.n_views, tracks.n_points
+    if K < 3:  # two views are their own seed: the factorisation's start is all there is
+        return None
     floor = FLOOR * bundle._image_size(tracks)
     seen = np.zeros((K, N), dtype=bool)
     seen[tracks.view, tracks.point] = True

@@ -69,3 +69,9 @@ def test_views_that_share_no_points_give_no_start(rng):
     keep = np.bincount(tracks.point[cut], minlength=N)[tracks.point[cut]] >= 2
     rows = np.flatnonzero(cut)[keep]
     assert incremental_start(tracks.subset(rows)) is None
+
+
+def test_two_views_give_no_start(rng):
+    tracks = _turntable(rng)
+    two = tracks.subset(np.flatnonzero(tracks.view < 2))
+    assert incremental_start(bundle.Tracks(two.view, two.point, two.z, N, 2)) is None
