@@ -102,6 +102,8 @@ def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0
     arrays are padded to one (B, n, d) stack, because a two-view test of a long
     sequence is hundreds of pairs of ~20 matches, where numpy's per-call cost
     is most of the work (backyard: 1.0 s one pair at a time)."""
+    if not qs:  # views sharing too few points for any pair to be tested
+        return []
     rng = np.random.default_rng(0) if rng is None else rng
     sizes = np.array([len(q) for q in qs])
     buckets = np.ceil(np.log2(np.maximum(sizes, 1))).astype(int)  # pad to at most twice

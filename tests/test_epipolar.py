@@ -93,3 +93,9 @@ def test_on_backyard_wrong_matches_between_views_looking_the_same_way_are_flagge
     flagged = epipolar_outliers(view, point, corrupted, view.max() + 1, point.max() + 1)
     assert flagged[wrong].mean() >= 0.9
     assert flagged[~wrong].mean() <= 0.002
+
+
+def test_views_too_far_apart_to_be_paired_flag_nothing(rng):
+    view, point, z = _scene(rng)
+    few = point < 10  # fewer than MIN_COMMON points shared by any two views
+    assert not epipolar_outliers(view[few], point[few], z[few], K, N).any()
