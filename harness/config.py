@@ -19,7 +19,7 @@ from ..errors import MpeError, coerce, suggest
 
 SCHEMA_VERSION = 2  # bump when a key's meaning changes: every cached run is redone
 
-VISIBILITY_MODES = ("all", "exact", "count", "raytrace")
+VISIBILITY_MODES = ("all", "exact", "count", "raytrace", "zbuffer")
 VIEW_LAYOUTS = ("band", "sphere")
 NOISE_TYPES = ("none", "distance", "correspondence")
 PROJECTIONS = ("fixed", "variable")
@@ -48,9 +48,10 @@ KEYS: dict[str, Key] = {
     "views": Key(4, int, "number K of views (>= 2)"),
     "angle_range": Key(360.0, float, "angle band theta_r in degrees from which the view angles are drawn (0 < theta_r <= 360)"),
     "view_layout": Key("band", str, "band: angles drawn from theta_r split into K bins (the paper); sphere: K nearly equidistant directions (Fibonacci lattice, randomly turned)", VIEW_LAYOUTS, hashed_at_default=False),
-    "visibility.mode": Key("exact", str, "which points each view sees", VISIBILITY_MODES),
+    "visibility.mode": Key("exact", str, "which points each view sees: all; exact (k views each); count (random per view); raytrace (rays towards the camera against the mesh); zbuffer (the authors' z-buffer on the points)", VISIBILITY_MODES),
     "visibility.k": Key(3, int, "mode exact: every point is visible in exactly k views (1 <= k <= views)"),
     "visibility.count": Key(None, int, "mode count: every view keeps this many random points; null means round(0.75 * points)", optional=True),
+    "visibility.n_rays": Key(None, int, "mode zbuffer: rays a side of each view's grid (a ray keeps the nearest point within 2 grid spacings); null means points // 3, the authors' default (their README uses 400)", optional=True, hashed_at_default=False),
     "visibility.min_views": Key(0, int, "keep only the points visible in at least this many views (0 keeps all), as in the paper's raytrace-count figure", hashed_at_default=False),
     "noise.type": Key("none", str, "distance: Gaussian noise on distance rows; correspondence: wrong correspondences", NOISE_TYPES),
     "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]"),
@@ -269,6 +270,9 @@ def _check_ranges(v: dict[str, Any]) -> None:
         raise bad("visibility.k", f"must be between 1 and views={v['views']}")
     if not 0 <= v["visibility.min_views"] <= v["views"]:
         raise bad("visibility.min_views", f"must be between 0 and views={v['views']}")
+    n_rays = v["visibility.n_rays"]
+    if n_rays is not None and n_rays < 2:
+        raise bad("visibility.n_rays", "must be at least 2")
     count = v["visibility.count"]
     if count is not None and not 2 <= count <= v["points"]:
         raise bad("visibility.count", f"must be between 2 and points={v['points']}")

@@ -63,6 +63,8 @@ def _visibility(config: RunConfig, mesh, points, R, rng) -> np.ndarray:
     if mode == "count":
         kept = config["visibility.count"]
         return visibility.count(K, N, kept if kept is not None else round(0.75 * N), rng)
+    if mode == "zbuffer":
+        return visibility.zbuffer(points, R, config["visibility.n_rays"])
     return visibility.raytrace(mesh, points, R)
 
 
