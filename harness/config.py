@@ -22,6 +22,7 @@ SCHEMA_VERSION = 2  # bump when a key's meaning changes: every cached run is red
 VISIBILITY_MODES = ("all", "exact", "count", "raytrace", "zbuffer")
 VIEW_LAYOUTS = ("band", "sphere")
 NOISE_TYPES = ("none", "distance", "correspondence")
+NOISE_VIEWS = ("one", "all")
 PROJECTIONS = ("fixed", "variable")
 OBSERVE = ("distances", "coordinates")
 INITS = ("smart", "random")
@@ -55,6 +56,7 @@ KEYS: dict[str, Key] = {
     "visibility.min_views": Key(0, int, "keep only the points visible in at least this many views (0 keeps all), as in the paper's raytrace-count figure", hashed_at_default=False),
     "noise.type": Key("none", str, "distance: Gaussian noise on distance rows; correspondence: wrong correspondences", NOISE_TYPES),
     "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]"),
+    "noise.views": Key("one", str, "correspondence: each wrong match is made in one random view of its point (the paper and the authors' code) or in all that see it (a consistent, undetectable wrong cloud)", NOISE_VIEWS, hashed_at_default=False),
     "noise.amplitude": Key(0.05, float, "p: noise variance p*d (distance) or displacement radius p*d (correspondence), d = cloud diameter"),
     "projections": Key("fixed", str, "fixed: the solver is given P^k; variable: it estimates them", PROJECTIONS),
     "observe": Key("distances", str, "what each view hands the solver: its distance matrix (the paper) or its points' 2D coordinates", OBSERVE),

@@ -10,10 +10,14 @@ What the paper leaves vague, and what we do:
   clipped to 0; the matrix is made symmetric by averaging it with its
   transpose, so an entry in one noisy row carries variance p d / 4 and an entry
   where two noisy rows cross carries p d / 2; the diagonal is zeroed.
-* Correspondence noise picks round(q N) points once. Each is observed, in
-  every view that sees it, at the position of another point chosen uniformly
-  among those within p d of it in 3D. A point with no other point that close
-  keeps its own position (counted in the returned number of swaps).
+* Correspondence noise picks round(q N) points once and, for each, another
+  point chosen uniformly among those within p d of it in 3D (a point with no
+  other point that close keeps its own position, and is not counted as
+  moved). By default (``noise.views=one``, the paper's text and the authors'
+  code) the wrong match is made in one view of the point, chosen uniformly
+  among those that see it: its observation there is the other point's. With
+  ``noise.views=all`` it is made in every view that sees it; the views then
+  agree on a consistent, wrong cloud that no method can detect.
 """
 
 from __future__ import annotations
@@ -66,3 +70,12 @@ def correspondence_noise(points: np.ndarray, fraction: float, amplitude: float, 
             observed[i] = points[others[rng.integers(len(others))]]
             moved += 1
     return observed, moved
+
+
+def one_view_each(moved: np.ndarray, visible: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """(K, N) bool: for each ``moved`` point, one of the views that see it, uniformly."""
+    where = np.zeros_like(visible)
+    for i in np.flatnonzero(moved & visible.any(axis=0)):
+        views = np.flatnonzero(visible[:, i])
+        where[views[rng.integers(len(views))], i] = True
+    return where

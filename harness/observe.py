@@ -104,9 +104,13 @@ def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations
     kind, q, p = config["noise.type"], config["noise.fraction"], config["noise.amplitude"]
     d = noise_mod.diameter(scene.points) if kind != "none" else 0.0
     seen = scene.points
+    wrong = np.zeros_like(scene.visible)  # (K, N): where a view sees a point's wrong match
     facts = {"diameter": d}
     if kind == "correspondence":
         seen, facts["correspondences_moved"] = noise_mod.correspondence_noise(scene.points, q, p, d, rng)
+        moved = np.any(seen != scene.points, axis=1)
+        wrong = scene.visible & moved if config["noise.views"] == "all" \
+            else noise_mod.one_view_each(moved, scene.visible, rng)
     P = scene.projections
     as_coordinates = config["observe"] == "coordinates"
     largest = int(scene.visible.sum(axis=1).max())
@@ -116,7 +120,7 @@ def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations
     out = []
     for k in range(len(P)):
         ids = np.flatnonzero(scene.visible[k])
-        image = seen[ids] @ P[k].T
+        image = np.where(wrong[k, ids, None], seen[ids], scene.points[ids]) @ P[k].T
         if as_coordinates:  # in the view's own frame: P^k x, as an orthographic camera sees it
             out.append(View(ids=ids, coordinates=image))
             continue

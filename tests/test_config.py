@@ -12,12 +12,14 @@ def test_defaults_are_complete_and_documented():
     flat = cfg.flat()
     assert flat["shape"] == "chair" and flat["points"] == 512 and flat["views"] == 4
     assert flat["solver.name"] == "sgd" and flat["solver.max_iter"] == 300
-    assert cfg.nested()["visibility"] == {"mode": "exact", "k": 3, "count": None, "min_views": 0}
+    assert cfg.nested()["visibility"] == {"mode": "exact", "k": 3, "count": None, "n_rays": None,
+                                          "min_views": 0}
 
 
 def test_keys_added_later_leave_earlier_hashes_alone():
     base = make_config({"points": 256})
-    explicit = make_config({"points": 256, "view_layout": "band", "visibility.min_views": 0})
+    explicit = make_config({"points": 256, "view_layout": "band", "visibility.min_views": 0,
+                            "visibility.n_rays": None, "noise.views": "one"})
     assert explicit.hash() == base.hash()  # cached runs from before the keys existed still count
     assert make_config({"points": 256, "view_layout": "sphere"}).hash() != base.hash()
     assert make_config({"points": 256, "visibility.min_views": 2}).hash() != base.hash()
@@ -64,7 +66,7 @@ def test_yaml_exponent_without_dot_is_a_number():
     ({"points": 3}, "points: must be at least 4, got 3"),
     ({"views": 1}, "views: must be at least 2, got 1"),
     ({"views": 3, "visibility.k": 4}, "visibility.k: must be between 1 and views=3, got 4"),
-    ({"visibility.mode": "exactly"}, "'exactly' is not one of all, exact, count, raytrace (did you mean 'exact'?)"),
+    ({"visibility.mode": "exactly"}, "'exactly' is not one of all, exact, count, raytrace, zbuffer (did you mean 'exact'?)"),
     ({"solver": "sdg"}, "unknown solver 'sdg' (known: baseline, factorize, refine, sgd) (did you mean 'sgd'?)"),
     ({"solver.max_itr": 5}, "unknown option 'solver.max_itr' for solver 'sgd' (options: "),
     ({"solver.max_iter": 2.5}, "solver.max_iter: expected an integer >= 0 for solver 'sgd', got 2.5"),

@@ -43,3 +43,39 @@ def test_correspondence_noise_moves_to_near_points(rng):
     assert np.all(np.linalg.norm(seen[changed] - pts[changed], axis=1) <= p * d + 1e-12)
     # each moved point sits exactly on another sampled point
     assert np.all(cdist(seen[changed], pts).min(axis=1) == 0)
+
+
+def _observed(**overrides):
+    from mpe3d.harness.config import make_config
+    from mpe3d.harness.observe import build_scene, observe, seed_streams
+
+    config = make_config({"shape": "torus", "points": 300, "views": 5, "visibility.k": 3,
+                          "observe": "coordinates", "projections": "fixed", **overrides})
+    scene = build_scene(config, seed_streams(0))
+    obs, facts = observe(scene, config, seed_streams(0))
+    return obs, facts
+
+
+def _views_changed(noisy, clean):
+    """(N,) how many views see each point somewhere else than the clean views do."""
+    changed = np.zeros(noisy.n_points, dtype=int)
+    for a, b in zip(noisy.views, clean.views):
+        changed[a.ids] += np.any(a.coordinates != b.coordinates, axis=1)
+    return changed
+
+
+def test_a_wrong_match_is_made_in_exactly_one_view_of_its_point():
+    clean, _ = _observed()
+    noisy, facts = _observed(**{"noise.type": "correspondence", "noise.fraction": 0.2,
+                                "noise.amplitude": 0.1})
+    changed = _views_changed(noisy, clean)
+    assert changed.max() == 1 and changed.sum() == facts["correspondences_moved"] > 40
+
+
+def test_noise_views_all_makes_it_in_every_view_that_sees_the_point():
+    clean, _ = _observed()
+    noisy, facts = _observed(**{"noise.type": "correspondence", "noise.fraction": 0.2,
+                                "noise.amplitude": 0.1, "noise.views": "all"})
+    changed = _views_changed(noisy, clean)
+    assert set(changed[changed > 0]) == {3}  # every point is in exactly 3 views
+    assert (changed > 0).sum() == facts["correspondences_moved"]
