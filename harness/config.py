@@ -23,6 +23,7 @@ VISIBILITY_MODES = ("all", "exact", "count", "raytrace", "zbuffer")
 VIEW_LAYOUTS = ("band", "sphere")
 NOISE_TYPES = ("none", "distance", "correspondence")
 NOISE_VIEWS = ("one", "all")
+NOISE_ROWS = ("per_view", "shared")
 PROJECTIONS = ("fixed", "variable")
 OBSERVE = ("distances", "coordinates")
 INITS = ("smart", "random")
@@ -56,6 +57,7 @@ KEYS: dict[str, Key] = {
     "visibility.min_views": Key(0, int, "keep only the points visible in at least this many views (0 keeps all), as in the paper's raytrace-count figure", hashed_at_default=False),
     "noise.type": Key("none", str, "distance: Gaussian noise on distance rows; correspondence: wrong correspondences", NOISE_TYPES),
     "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]"),
+    "noise.rows": Key("per_view", str, "distance: the noisy rows drawn independently in each view, round(q n_k) of them, or one set of round(q N) points for all views (the authors' code)", NOISE_ROWS, hashed_at_default=False),
     "noise.views": Key("one", str, "correspondence: each wrong match is made in one random view of its point (the paper and the authors' code) or in all that see it (a consistent, undetectable wrong cloud)", NOISE_VIEWS, hashed_at_default=False),
     "noise.amplitude": Key(0.05, float, "p: noise variance p*d (distance) or displacement radius p*d (correspondence), d = cloud diameter"),
     "projections": Key("fixed", str, "fixed: the solver is given P^k; variable: it estimates them", PROJECTIONS),

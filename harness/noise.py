@@ -4,8 +4,9 @@ What the paper leaves vague, and what we do:
 
 * ``d``, "the diameter of the point cloud", is the largest distance between
   two of the N sampled 3D points.
-* Distance noise picks its round(q n_k) rows independently in each view (the
-  authors' code picks one set of points for all views). Noise with variance
+* Distance noise picks its round(q n_k) rows independently in each view
+  (``noise.rows=per_view``), or round(q N) points once, whose rows are noisy
+  in every view that sees them (``noise.rows=shared``, the authors' code). Noise with variance
   p d (sigma = sqrt(p d)) is added to every entry of those rows; negatives are
   clipped to 0; the matrix is made symmetric by averaging it with its
   transpose, so an entry in one noisy row carries variance p d / 4 and an entry
@@ -39,10 +40,12 @@ def diameter(points: np.ndarray) -> float:
 
 
 def distance_noise(D: np.ndarray, fraction: float, amplitude: float, d: float,
-                   rng: np.random.Generator) -> np.ndarray:
-    """Gaussian noise N(0, p d) on round(q n) random rows of one view's distances."""
+                   rng: np.random.Generator, rows: np.ndarray | None = None) -> np.ndarray:
+    """Gaussian noise N(0, p d) on round(q n) random rows of one view's distances,
+    or on the given ``rows`` (``noise.rows=shared``: one set of points for all views)."""
     n = len(D)
-    rows = rng.choice(n, size=int(round(fraction * n)), replace=False)
+    if rows is None:
+        rows = rng.choice(n, size=int(round(fraction * n)), replace=False)
     noisy = D.copy()
     noisy[rows] += rng.normal(0.0, np.sqrt(amplitude * d), size=(len(rows), n))
     np.maximum(noisy, 0.0, out=noisy)

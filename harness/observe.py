@@ -111,6 +111,10 @@ def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations
         moved = np.any(seen != scene.points, axis=1)
         wrong = scene.visible & moved if config["noise.views"] == "all" \
             else noise_mod.one_view_each(moved, scene.visible, rng)
+    shared = None  # noise.rows=shared: the points whose rows are noisy in every view
+    if kind == "distance" and config["noise.rows"] == "shared":
+        N = len(scene.points)
+        shared = rng.choice(N, size=int(round(q * N)), replace=False)
     P = scene.projections
     as_coordinates = config["observe"] == "coordinates"
     largest = int(scene.visible.sum(axis=1).max())
@@ -126,7 +130,8 @@ def observe(scene: Scene, config: RunConfig, streams=None) -> tuple[Observations
             continue
         D = cdist(image, image)
         if kind == "distance":
-            D = noise_mod.distance_noise(D, q, p, d, rng)
+            rows = None if shared is None else np.flatnonzero(np.isin(ids, shared))
+            D = noise_mod.distance_noise(D, q, p, d, rng, rows)
         out.append(View(ids=ids, distances=D))
     empty = [k for k, v in enumerate(out) if v.size < 2]
     if empty:

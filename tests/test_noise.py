@@ -79,3 +79,26 @@ def test_noise_views_all_makes_it_in_every_view_that_sees_the_point():
     changed = _views_changed(noisy, clean)
     assert set(changed[changed > 0]) == {3}  # every point is in exactly 3 views
     assert (changed > 0).sum() == facts["correspondences_moved"]
+
+
+def test_shared_distance_rows_are_the_same_points_in_every_view():
+    def noisy_rows(rows):
+        from mpe3d.harness.config import make_config
+        from mpe3d.harness.observe import build_scene, observe, seed_streams
+
+        config = make_config({"shape": "torus", "points": 200, "views": 4, "visibility.k": 3,
+                              "noise.type": "distance", "noise.fraction": 0.2,
+                              "noise.amplitude": 0.01, "noise.rows": rows})
+        scene = build_scene(config, seed_streams(0))
+        clean = observe(scene, config.replace(**{"noise.type": "none"}), seed_streams(0))[0]
+        noisy = observe(scene, config, seed_streams(0))[0]
+        # a noisy row differs from the clean one in nearly every entry, a clean row
+        # only where it crosses a noisy one
+        return [(set(a.ids[np.mean(a.distances != b.distances, axis=1) > 0.5]), set(a.ids))
+                for a, b in zip(noisy.views, clean.views)]
+    shared, per_view = noisy_rows("shared"), noisy_rows("per_view")
+    union = set.union(*(rows for rows, _ in shared))
+    assert 0.15 * 200 <= len(union) <= 0.2 * 200  # round(q N) points, some seen nowhere noisy
+    for rows, seen in shared:  # each view's noisy rows: every point of the one set it sees
+        assert rows == union & seen
+    assert not all(rows == set.union(*(r for r, _ in per_view)) & seen for rows, seen in per_view)
