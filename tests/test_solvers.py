@@ -71,6 +71,23 @@ def test_baseline_averages_only_views_that_see_both_points():
     assert D[i, j] == pytest.approx(np.mean(values))
 
 
+def test_the_authors_baseline_averages_over_all_views_with_zeros_for_unseen_pairs():
+    from mpe3d.solvers.baseline import authors_average
+
+    _, scene, obs = scene_and_observations(points=60, views=5)
+    D = authors_average(obs)
+    i, j = 3, 17
+    values = [v.distances[list(v.ids).index(i), list(v.ids).index(j)]
+              for v in obs.views if i in v.ids and j in v.ids]
+    assert 0 < len(values) < 5  # seen by some views only: the zeros count
+    assert D[i, j] == pytest.approx(np.sum(values) / 5)
+    never = average_distances(obs)[1] == 0
+    assert np.all(D[never] == 0)
+    ours = solvers.solve("baseline", obs, random_state=0).points
+    theirs = solvers.solve("baseline", obs, random_state=0, method="authors").points
+    assert not np.allclose(ours, theirs)
+
+
 def test_pairs_never_seen_get_graph_distances():
     # a path 0-1-2: pair (0, 2) is never seen and gets 1 + 2 = 3
     D = np.array([[0, 1, 0], [1, 0, 2], [0, 2, 0]], dtype=float)
