@@ -93,6 +93,16 @@ def _raytrace_counts(frame: pd.DataFrame, report: Report) -> None:
                  "Reconstruction of the points seen in at least m views (points_kept of them).")
 
 
+def _occlusion(frame: pd.DataFrame, report: Report) -> None:
+    # seen_ge_2 counts the sampled points, before visibility.min_views drops any
+    frame = frame.assign(unplaceable=1 - frame["seen_ge_2"] / frame["points"])
+    report.table(tables.summary(frame, ["shape", "visibility.min_views", "projections", "method"],
+                                ["unplaceable", *METRICS]), "occlusion",
+                 "Occlusion by the surface (mesh ray casting, not the paper's protocol): CD, EMD "
+                 "and ROA on all points and on those seen in at least 2 views, and the share of "
+                 "the points that no method can place (seen in fewer than 2).")
+
+
 def _angle_band(frame: pd.DataFrame, report: Report) -> None:
     report.figure(figures.line_figure(frame, "angle_range", [CD, ROA], logx=True,
                                       xlabel="angle band θr (degrees)"), "angle_band",
@@ -123,6 +133,7 @@ RECIPE = (
     Experiment("paper-visibility", "Visibility: points in exactly k views", _visibility),
     Experiment("paper-raytrace-counts", "Ray-traced visibility counts", _raytrace_counts),
     Experiment("paper-angle-band", "Angle constraints", _angle_band),
+    Experiment("paper-occlusion", "Occlusion by the surface (beyond the paper)", _occlusion),
 )
 BY_NAME = {e.name: e for e in RECIPE}
 

@@ -110,7 +110,7 @@ def test_hash_is_stable_across_processes_and_pinned():
     ("grid:\n  views: [3, 4]\n  projections: []\n", "grid.projections: empty list at {}:3"),
     ("zip:\n  views: [2, 3]\n  visibility.k: [1]\n", "zip: lists differ in length (views has 2, visibility.k has 1)"),
     ("grid:\n  views:\n    - 3\n    - many\n", "views: expected an integer, got 'many' at {}:4"),
-    ("grid:\n  visibility.mode: [exact, exactly]\n", "'exactly' is not one of all, exact, count, raytrace at {}:2 (did you mean 'exact'?)"),
+    ("grid:\n  visibility.mode: [exact, exactly]\n", "'exactly' is not one of all, exact, count, raytrace, zbuffer at {}:2 (did you mean 'exact'?)"),
     ("grid: {views: [2, 3]\n", "malformed YAML at {}:"),
     ("name: x\n  bad: indent\n", "malformed YAML at {}:"),
     ("base: {views: 2}\ngrid:\n  visibility.k: [1, 3]\n", "visibility.k: must be between 1 and views=2, got 3 at {}:3"),
