@@ -56,17 +56,17 @@ def robust_points(X, cameras, tracks, points, tau, seed: int = 0):
         P, tracks, rows, start, count, np.random.default_rng(seed))], axis=1)  # current first
     cost = _costs(cameras, tracks, rows, start, count, hypotheses, tau)
     best = hypotheses[np.arange(len(points)), np.argmin(cost, axis=1)]
+    best_cost = _cost(cameras, tracks, rows, owner, best, tau)
     for _ in range(_REFINEMENTS):
         inlier = _lengths(cameras, tracks, rows, owner, best) <= tau
         if not inlier.any():  # no observation agrees with any other: nothing to refit
             break
         A, b = dlt_rows(P, tracks.view[rows[inlier]], tracks.z[rows[inlier]])
         refit = least_squares_points(A, b, owner[inlier], len(points))
-        enough = np.bincount(owner[inlier], minlength=len(points)) >= 2
-        better = enough & (_cost(cameras, tracks, rows, owner, refit, tau)
-                           <= _cost(cameras, tracks, rows, owner, best, tau))
-        best[better] = refit[better]
-    moved = _cost(cameras, tracks, rows, owner, best, tau) < cost[:, 0]
+        refit_cost = _cost(cameras, tracks, rows, owner, refit, tau)
+        better = (np.bincount(owner[inlier], minlength=len(points)) >= 2) & (refit_cost <= best_cost)
+        best[better], best_cost[better] = refit[better], refit_cost[better]
+    moved = best_cost < cost[:, 0]
     X = X.copy()
     X[points[moved]] = best[moved]
     outlying[rows] = _lengths(cameras, tracks, rows, owner, X[points]) > tau

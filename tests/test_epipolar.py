@@ -4,25 +4,15 @@ import pandas as pd
 import pytest
 
 from mpe3d.solvers import bundle
-from mpe3d.solvers.cameras import affine_cameras, exp_so3
 from mpe3d.solvers.epipolar import epipolar_outliers
 
-from .helpers import SHARED
+from .helpers import SHARED, random_views
 
 N, K = 120, 8
 
 
 def _scene(rng, model="scaled", noise=0.5):
-    X = rng.standard_normal((N, 3)) * 100
-    R = exp_so3(0.6 * rng.standard_normal((K, 3)))
-    cameras = affine_cameras(model, R[:, :2], np.exp(0.2 * rng.standard_normal(K)),
-                             320 + 20 * rng.standard_normal((K, 2)), focal=1500.0,
-                             principal_point=[320.0, 240.0])
-    view, point = np.repeat(np.arange(K), N), np.tile(np.arange(N), K)
-    seen = rng.random(len(view)) < 0.8
-    view, point = view[seen], point[seen]
-    z = cameras.project(X, view, point) + noise * rng.standard_normal((len(view), 2))
-    return view, point, z
+    return random_views(rng, model, N, K, turn=0.6, noise=noise, keep=0.8)[2:]
 
 
 def _swap(view, z, share, rng):

@@ -3,20 +3,15 @@ import numpy as np
 import pytest
 
 from mpe3d.solvers import bundle
-from mpe3d.solvers.cameras import affine_cameras, exp_so3
 from mpe3d.solvers.triangulation import dlt_rows, least_squares_points, robust_points
+
+from .helpers import random_views
 
 N, K = 40, 6
 
 
 def _scene(model, rng, noise=0.0):
-    X = rng.standard_normal((N, 3)) * 100
-    R = exp_so3(0.5 * rng.standard_normal((K, 3)))
-    cameras = affine_cameras(model, R[:, :2], np.exp(0.2 * rng.standard_normal(K)),
-                             320 + 20 * rng.standard_normal((K, 2)), focal=1500.0,
-                             principal_point=[320.0, 240.0])
-    view, point = np.repeat(np.arange(K), N), np.tile(np.arange(N), K)
-    z = cameras.project(X, view, point) + noise * rng.standard_normal((len(view), 2))
+    X, cameras, view, point, z = random_views(rng, model, N, K, turn=0.5, noise=noise)
     return X, cameras, bundle.Tracks(view, point, z, N, K)
 
 
