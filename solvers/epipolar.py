@@ -46,8 +46,8 @@ def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_view
                       n_points: int, *, sigmas: float = SIGMAS, floor: float = 0.0,
                       seed: int = 0) -> np.ndarray:
     """(T,) bool: the observations that most of their view pairs flag as off the
-    pair's affine epipolar hyperplane, or off its robust plane in it, by more than ``sigmas`` robust sigmas
-    (and more than ``floor`` pixels). Observations tested by fewer than two
+    pair's affine epipolar hyperplane, or off its robust plane in it, by more
+    than ``sigmas`` robust sigmas (and more than ``floor`` pixels). Observations tested by fewer than two
     pairs (a point seen twice) are never flagged."""
     by_view = np.split(np.argsort(view, kind="stable"),
                        np.cumsum(np.bincount(view, minlength=n_views))[:-1])
