@@ -11,11 +11,14 @@ correspondences.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from scipy.optimize import minimize
 
 
 from .base import Choice, Interval, Observations, Reconstruction, register
+from .baseline import SMART_START_IMPORTS
 from .factorize import solve_factorize
 from .stress import LOSSES, Stress
 
@@ -27,6 +30,20 @@ _EXACT = 1e-18
 # Above this relative stress after descent the views are noisy, and refine also
 # descends from the paper's smart (MDS) start, keeping the lower objective.
 _NOISY = 1e-10
+# An observation whose row misfits beyond the rows' median by this many robust
+# sigmas of theirs is rejected: a corrupted distance row, or a wrong match.
+ROW_SIGMAS = 5.0
+_REJECTION_ROUNDS = 6
+# The rounds stop at this relative decrease: noisy views, so no more digits to win
+REJECTION_TOL = 1e-9
+_PLACING_STEPS = 10  # Gauss-Newton steps placing one point from its distance rows
+_REWEIGHTS = 3  # rounds of reweighting a weak point's rows by their misfits
+# Anchors per row while scouting a weak point's view pairs (the last fit uses all):
+# the median misfit of 64 distances already tells a clean row from a corrupted one.
+_SCOUTS = 64
+# The rounds end when fewer observations than this share change side.
+_SETTLED = 1e-3
+OUTLIERS = ("reject", "keep")
 
 
 def _skew(w: np.ndarray) -> np.ndarray:
@@ -83,13 +100,16 @@ _PARAMETER_CONSTRAINTS = {
     "loss": Choice(LOSSES),
     "max_iter": Interval(int, 0, None),
     "tol": Interval(float, 0.0, None),
+    "outliers": Choice(OUTLIERS),
 }
 
 
 @register("refine", constraints=_PARAMETER_CONSTRAINTS, paper=False,
-          summary="ours: factorize, then full-batch L-BFGS on the stress (robust losses optional)")
+          summary="ours: factorize, then full-batch L-BFGS on the stress (robust losses optional)",
+          imports=SMART_START_IMPORTS)
 def solve_refine(observations: Observations, *, random_state=None,
-                 loss: str = "l2", max_iter: int = 500, tol: float = 1e-12) -> Reconstruction:
+                 loss: str = "l2", max_iter: int = 500, tol: float = 1e-12,
+                 outliers: str = "reject") -> Reconstruction:
     """Full-batch L-BFGS on the 3DMPE stress, started from ``factorize``.
 
     Parameters
@@ -102,6 +122,14 @@ def solve_refine(observations: Observations, *, random_state=None,
         L-BFGS iterations.
     tol : float, default 1e-12
         Relative decrease of the objective below which L-BFGS stops.
+    outliers : {"reject", "keep"}, default "reject"
+        ``reject``: when the views are noisy, each observation (view k, point
+        i) whose distance row misfits (median |residual| over the row) beyond
+        the rows' median by ROW_SIGMAS robust sigmas is taken for corrupted,
+        its alpha_i^k in Eq. 1 set to REJECTED_ALPHA, and the stress solved
+        again, until the rejected set stops changing. A corrupted row or a
+        wrong match in one view then no longer bends the cloud. ``keep``
+        minimises the paper's stress as it stands.
 
     There is no ``init``: the start is ``factorize``'s exact algebraic
     solution. When the descent from it ends at a relative stress above 1e-10
@@ -133,22 +161,157 @@ def solve_refine(observations: Observations, *, random_state=None,
         if alt[2] < value:
             X, P, value, history, iterations, termination = alt
             used_start = "smart (MDS)"
+    rejected = 0
+    if outliers == "reject" and value > _NOISY * total and not stress.sparse:
+        X, P, value, history, iterations, reason, rejected = _rejecting(
+            observations, stress, X, P, history, iterations, max_iter, max(tol, REJECTION_TOL), total)
+        termination = reason or termination
     exact = iterations == 0 and used_start == "factorize" and value == f0
     if exact and loss == "l2":
         paper_stress = start.stress
     else:
-        paper_stress = value if loss == "l2" else Stress(observations).value(X, P)
+        paper_stress = value if loss == "l2" and not rejected else Stress(observations).value(X, P)
     return Reconstruction(points=X, projections=P, stress=paper_stress,
                           stress_history=np.array(history), iterations=iterations,
                           termination=termination,
                           info={"unplaced": start.info["unplaced"], "loss": loss,
                                 "loss_scale": scale, "objective": value, "start": used_start,
-                                "start_stress": start.stress})
+                                "start_stress": start.stress, "rejected": rejected})
+
+
+def _rejecting(observations, stress, X, P, history, iterations, max_iter, tol, total):
+    """Reject the observations whose rows misfit, solve again, repeat until the
+    rejected set is stable: the result, and how many observations it rejects.
+
+    Each round solves without the rejected observations (alpha 0), which fixes
+    the projections and every point still kept in two views. The points that
+    are not (weak: they have no depth without their rejected rows) are then
+    placed one by one against the others, from the pair of their views that
+    the rest of their views agree with best (:func:`_place_weak`): a row
+    rejected only because the distorted first fit misplaced its point fits
+    again there, and is taken back in the next round.
+    """
+    rejected = [np.zeros(len(ids), dtype=bool) for ids in stress.ids]
+    value, termination = None, None
+    for _ in range(_REJECTION_ROUNDS):
+        now = _misfits(stress, X, P, rejected, total)
+        changed = sum(int(np.sum(a != b)) for a, b in zip(now, rejected))
+        if changed == 0 or (value is not None and changed <= _SETTLED * sum(map(len, now))):
+            break
+        rejected = now
+        weak = _weak(stress, rejected)
+        X, P, value, more, steps, termination = _descend(
+            observations, stress.weighted([np.where(r, 0.0, 1.0) for r in rejected]), X, P, None,
+            max_iter, tol, total)
+        history, iterations = history + more[1:], iterations + steps
+        if weak.any():
+            X = _place_weak(stress, X, P, weak, rejected, total)
+    value = stress.value(X, P) if value is None else value
+    return X, P, value, history, iterations, termination, int(sum(r.sum() for r in rejected))
+
+
+def _place_weak(stress, X, P, weak, rejected, total) -> np.ndarray:
+    """Each weak point placed against the points kept: from the pair of its
+    views with the lowest truncated misfit over all of its views (MSAC, the
+    truncation at the rejection line), then from all of its views, each
+    weighted by its inverse misfit variance (floored at the line's sigma), so
+    that a clean row fixes the point in its view and the rows of corrupted
+    distances, which still know its depth, add only that."""
+    line = _line(stress, X, P, rejected, total)
+    X = X.copy()
+    anchor = ~weak
+    position = np.full((len(stress.ids), stress.n_points), -1)  # point -> its row in each view
+    for k, ids in enumerate(stress.ids):
+        position[k, ids] = np.arange(len(ids))
+    for i in np.flatnonzero(weak):
+        rows = _rows_of_point(stress, X, P, position[:, i], rejected, anchor)
+        if len(rows) < 2:
+            continue
+        few = [(Pk, Y[::-(-len(d) // _SCOUTS)], d[::-(-len(d) // _SCOUTS)]) for Pk, Y, d in rows]
+        best, best_cost = X[i], np.inf
+        for a, b in itertools.combinations(range(len(rows)), 2):
+            x = _multilaterate(X[i], [few[a], few[b]])
+            cost = np.minimum(_row_misfits(x, few), line).sum()
+            if cost < best_cost:
+                best, best_cost = x, cost
+        for last in range(_REWEIGHTS, 0, -1):  # each row weighted by its inverse misfit variance
+            using = rows if last == 1 else few
+            weights = 1.0 / np.maximum(_row_misfits(best, using), line / ROW_SIGMAS) ** 2
+            best = _multilaterate(best, using, weights)
+        X[i] = best
+    return X
+
+
+def _rows_of_point(stress, X, P, position, rejected, anchor):
+    """A point's distance rows (at ``position`` in each view, -1 where unseen)
+    against the anchor points kept there: (P^k, their images, the distances)."""
+    rows = []
+    for k, ids in enumerate(stress.ids):
+        at = position[k]
+        if at < 0:
+            continue
+        cols = np.flatnonzero(anchor[ids] & ~rejected[k])
+        if len(cols):
+            rows.append((P[k], X[ids[cols]] @ P[k].T, stress.D[k][at, cols]))
+    return rows
+
+
+def _row_misfits(x, rows) -> np.ndarray:
+    return np.array([np.median(np.abs(d - np.linalg.norm(x @ Pk.T - Y, axis=1))) for Pk, Y, d in rows])
+
+
+def _multilaterate(x, rows, weights=None) -> np.ndarray:
+    """The point whose projected distances to the rows' anchors fit theirs
+    (least squares, each row's residuals weighted), by Gauss-Newton from x."""
+    P = np.concatenate([np.broadcast_to(Pk, (len(d), 2, 3)) for Pk, _, d in rows])
+    Y = np.concatenate([Y for _, Y, _ in rows])
+    d = np.concatenate([d for _, _, d in rows])
+    root = np.ones(len(d)) if weights is None else np.concatenate(
+        [np.full(len(row[2]), np.sqrt(w)) for row, w in zip(rows, weights)])
+    for _ in range(_PLACING_STEPS):
+        diff = np.einsum("nij,j->ni", P, x) - Y
+        e = np.maximum(np.linalg.norm(diff, axis=1), 1e-12)
+        r = d - e
+        J = -np.einsum("ni,nij->nj", diff / e[:, None], P)  # d r / d x
+        step = np.linalg.lstsq(root[:, None] * J, -root * r, rcond=None)[0]
+        x = x + step
+        if np.linalg.norm(step) <= 1e-9 * (1.0 + np.linalg.norm(x)):
+            break
+    return x
+
+
+def _weak(stress, rejected) -> np.ndarray:
+    """The points kept in fewer than two views: their depth needs the rejected rows."""
+    kept = np.zeros(stress.n_points, dtype=int)
+    for r, ids in zip(rejected, stress.ids):
+        kept[ids[~r]] += 1
+    return kept < 2
+
+
+def _misfits(stress, X, P, rejected, total):
+    """Per view, the observations whose row misfits beyond the rows' median by
+    ROW_SIGMAS robust sigmas (rows measured against the points not rejected)."""
+    misfit = stress.row_residuals(X, P, [~r for r in rejected])
+    line = _line(stress, X, P, rejected, total, misfit)
+    return [m > line for m in misfit]
+
+
+def _line(stress, X, P, rejected, total, misfit=None) -> float:
+    """The rejection line: the rows' median misfit plus ROW_SIGMAS robust sigmas."""
+    if misfit is None:
+        misfit = stress.row_residuals(X, P, [~r for r in rejected])
+    every = np.concatenate(misfit)
+    middle = np.median(every)
+    # floored: rounding-level residuals of a near-exact fit are no outliers
+    sigma = max(1.4826 * np.median(np.abs(every - middle)), 1e-6 * np.sqrt(total / stress.n_pairs))
+    return middle + ROW_SIGMAS * sigma
 
 
 def _descend(observations: Observations, stress: Stress, X0: np.ndarray, P0: np.ndarray,
-             f0: float | None, max_iter: int, tol: float, total: float):
-    """L-BFGS from (X0, P0): the points, projections, objective, history, iterations, reason."""
+             f0: float | None, max_iter: int, tol: float, total: float,
+             free: np.ndarray | None = None):
+    """L-BFGS from (X0, P0): the points, projections, objective, history, iterations, reason.
+    With ``free`` (a mask over the points) only those points move."""
     R0 = _rotations(P0)
     f, unpack = _objective(stress, X0.shape, R0, P0 if observations.fixed else None)
     theta0 = X0.ravel() if observations.fixed else np.concatenate([X0.ravel(), np.zeros(3 * len(P0))])
@@ -158,15 +321,20 @@ def _descend(observations: Observations, stress: Stress, X0: np.ndarray, P0: np.
         theta, value, iterations = theta0, f0, 0
         termination = "start already exact (relative stress below 1e-18)"
     else:
-        theta, value, iterations, termination = _minimise(f, theta0, history, max_iter, tol)
+        bounds = None
+        if free is not None:  # L-BFGS-B keeps a variable whose bounds meet where it is
+            held = np.ones(theta0.size, dtype=bool)
+            held[:3 * len(X0)] = ~np.repeat(free, 3)
+            bounds = [(v, v) if h else (None, None) for v, h in zip(theta0, held)]
+        theta, value, iterations, termination = _minimise(f, theta0, history, max_iter, tol, bounds)
     X, P, _ = unpack(theta)
     return X, np.array(P), value, history, iterations, termination
-def _minimise(f, theta0: np.ndarray, history: list, max_iter: int, tol: float):
+def _minimise(f, theta0: np.ndarray, history: list, max_iter: int, tol: float, bounds=None):
     """L-BFGS-B from theta0; the start back if it somehow ends higher."""
     def record(intermediate_result):  # scipy passes the OptimizeResult by this name
         history.append(float(intermediate_result.fun))
 
-    result = minimize(f, theta0, jac=True, method="L-BFGS-B", callback=record,
+    result = minimize(f, theta0, jac=True, method="L-BFGS-B", callback=record, bounds=bounds,
                       options={"maxiter": max_iter, "ftol": tol, "gtol": 0.0, "maxcor": 20})
     termination = str(result.message)
     if result.status == 2:  # L-BFGS-B's "ABNORMAL": its line search found no decrease

@@ -15,6 +15,8 @@ Python loop touches a pair.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
@@ -61,6 +63,20 @@ def _loss(r: np.ndarray, loss: str, scale: float) -> tuple[np.ndarray, np.ndarra
     return 2 * scale * scale * (root - 1.0), r / root
 
 
+def _weighted_loss(r: np.ndarray, w: np.ndarray | None, loss: str, scale: float):
+    """sum of w rho(r), and w phi(r) in place of r for the gradient (w = 1 if None)."""
+    if loss == "l2":
+        if w is None:
+            flat = r.ravel()
+            return float(flat @ flat), r
+        wr = w * r
+        return float(np.vdot(wr, r)), wr
+    rho, phi = _loss(r, loss, scale)
+    if w is None:
+        return float(rho.sum()), phi
+    return float(np.vdot(w, rho)), w * phi
+
+
 class Stress:
     """Evaluate the stress and its gradients for fixed observations.
 
@@ -87,6 +103,35 @@ class Stress:
                 self.pairs.append(None)
         self.n_pairs = sum(len(p[0]) if p else len(i) * (len(i) - 1) // 2
                            for i, p in zip(self.ids, self.pairs))
+        self.alpha = [None] * len(self.ids)  # per view: a weight per visible point, or None
+
+    def weighted(self, alpha: list) -> "Stress":
+        """The same stress with each observation (view k, point i) weighted:
+        the paper's visibility alpha_i^k of Eq. 1 taken from {0, 1} into [0, 1],
+        each squared residual counting alpha_i^k alpha_j^k times. Shares the
+        distances."""
+        out = copy.copy(self)
+        out.alpha = [None if a is None else np.asarray(a, dtype=np.float64) for a in alpha]
+        return out
+
+    def row_residuals(self, X: np.ndarray, P: np.ndarray, among: list) -> list[np.ndarray]:
+        """Per view, each row's median |D_ij - ||P(x_i - x_j)||| over the points j
+        ``among[k]`` (a boolean mask over the view's points): the size of the
+        misfit of observation (k, i), which the rows it is compared with, if
+        fewer than half of them are corrupted, do not sway. Dense views only;
+        a sparse view gives zeros."""
+        out = []
+        for k, ids in enumerate(self.ids):
+            if self.pairs[k] is not None or not np.any(among[k]):
+                out.append(np.zeros(len(ids)))
+                continue
+            Y = X[ids] @ P[k].T
+            cols = np.flatnonzero(among[k])
+            step = max(1, _BLOCK_ENTRIES // max(len(cols), 1))
+            out.append(np.concatenate([
+                np.median(np.abs(self.D[k][a:a + step, cols] - cdist(Y[a:a + step], Y[cols])), axis=1)
+                for a in range(0, len(ids), step)]))
+        return out
 
     @property
     def sparse(self) -> bool:
@@ -105,11 +150,8 @@ class Stress:
         r = d - e
         if mask is not None:
             r = r * mask
-        if self.loss == "l2":
-            total = float(r @ r)
-        else:
-            rho, r = _loss(r, self.loss, self.scale)
-            total = float(rho.sum())
+        w = None if self.alpha[k] is None else self.alpha[k][i] * self.alpha[k][j]
+        total, r = _weighted_loss(r, w, self.loss, self.scale)
         if not want_grad:
             return total, None
         B = r / np.maximum(e, 1e-12)
@@ -134,12 +176,9 @@ class Stress:
             r = np.subtract(D[a:b], e)
             if mask is not None:
                 r *= mask[a:b]
-            if self.loss == "l2":
-                flat = r.ravel()
-                total += float(flat @ flat)
-            else:
-                rho, r = _loss(r, self.loss, self.scale)
-                total += float(rho.sum())
+            w = None if self.alpha[k] is None else np.outer(self.alpha[k][a:b], self.alpha[k])
+            value, r = _weighted_loss(r, w, self.loss, self.scale)
+            total += value
             if want_grad:
                 # The floor keeps 1/e finite on the diagonal and for coincident
                 # images, where r is 0 or the pair's B_ij terms cancel below.

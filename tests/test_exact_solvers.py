@@ -56,10 +56,48 @@ def test_robust_loss_beats_plain_under_distance_noise():
             shape=shape, points=300, views=4, projections="variable",
             **{"noise.type": "distance", "noise.fraction": 0.2, "noise.amplitude": 0.05})
         for loss, out in (("l2", plain), ("huber", robust)):
-            rec = solvers.solve("refine", obs, random_state=0, loss=loss)
+            rec = solvers.solve("refine", obs, random_state=0, loss=loss, outliers="keep")
             out.append(evaluate(scene.points, rec.points, "rigid", np.random.default_rng(0))[0]["cd"])
     # Measured: robust CD about 4x lower than plain on these shapes.
     assert np.median(robust) < 0.5 * np.median(plain), (robust, plain)
+
+
+@pytest.mark.parametrize("noise", ["distance", "correspondence"])
+def test_rejecting_corrupted_rows_beats_the_paper_sgd_three_times(noise):
+    # issue 15's target, at a test's size: q = 0.3, p = 0.05, one view per wrong match
+    ratios = []
+    for shape in ("chair", "airplane", "sofa"):
+        config, scene, obs = scene_and_observations(
+            shape=shape, points=200, views=5, projections="variable",
+            **{"visibility.k": 3, "noise.type": noise, "noise.fraction": 0.3, "noise.amplitude": 0.05})
+        cd = {}
+        for name, options in (("sgd", {}), ("refine", {}), ("keep", {"outliers": "keep"})):
+            rec = solvers.solve("sgd" if name == "sgd" else "refine", obs, random_state=0, **options)
+            cd[name] = evaluate(scene.points, rec.points, "rigid", np.random.default_rng(0))[0]["cd_x100"]
+        assert cd["refine"] < cd["keep"], cd  # the rejection, not the start, does it
+        ratios.append(cd["sgd"] / cd["refine"])
+    assert np.median(ratios) >= 3.0, ratios
+
+
+def test_rejection_finds_the_wrong_matches_and_leaves_clean_views_alone():
+    config, scene, obs = scene_and_observations(
+        shape="chair", points=200, views=5, projections="variable",
+        **{"visibility.k": 3, "noise.type": "correspondence", "noise.fraction": 0.2,
+           "noise.amplitude": 0.05})
+    rec = solvers.solve("refine", obs, random_state=0)
+    moved = config_moved(config, scene)
+    assert moved - 2 <= rec.info["rejected"] <= moved + 5
+    assert roa_on_placed(scene, rec) < 1e-3  # what is left is exact, up to the L-BFGS tolerance
+    _, clean_scene, clean = scene_and_observations(shape="chair", points=200, views=5,
+                                                   projections="variable", **{"visibility.k": 3})
+    assert solvers.solve("refine", clean, random_state=0).info["rejected"] == 0
+
+
+def config_moved(config, scene):
+    """How many wrong matches observe() made for ``config``."""
+    from mpe3d.harness.observe import observe, seed_streams
+
+    return observe(scene, config, seed_streams(config["seed"]))[1]["correspondences_moved"]
 
 
 def test_refine_never_ends_above_its_start():
@@ -67,7 +105,7 @@ def test_refine_never_ends_above_its_start():
                                        **{"noise.type": "distance", "noise.fraction": 0.4,
                                           "noise.amplitude": 0.1})
     start = solvers.solve("factorize", obs, random_state=3)
-    rec = solvers.solve("refine", obs, random_state=3)
+    rec = solvers.solve("refine", obs, random_state=3, outliers="keep")
     assert rec.stress <= start.stress
     assert rec.stress_history[-1] <= rec.stress_history[0]
     assert np.all(np.diff(rec.stress_history) <= 1e-9 * rec.stress_history[0])
