@@ -11,7 +11,9 @@ from mpe3d.harness.config import KEYS
 # How each solver is named in tables and figures: the paper's method is
 # "3DMPE (paper)", our exact solver is "ours (refine)".
 METHOD_LABELS = {"baseline": "baseline (MDS)", "sgd": "3DMPE (paper)", "refine": "ours (refine)",
-                 "factorize": "ours (factorize)"}
+                 "factorize": "ours (factorize)",
+                 # the authors' literal baseline (baseline.method=authors), beside ours
+                 "baseline:authors": "baseline (authors': zero-filled average)"}
 SETTING_LABELS = {"fixed": "F", "variable": "V"}
 
 # The CD and EMD scale of the paper's tables: 100 x mean (unsquared) distance,
@@ -21,7 +23,11 @@ METRIC_LABELS = {CD: "CD (×100, mean NN distance)", EMD: "EMD (×100, mean dist
                  ROA: "ROA (RMS after rigid alignment)", "runtime_s": "runtime (s)"}
 
 
-def method_label(solver: str) -> str:
+def method_label(solver: str, variant=None) -> str:
+    """A solver's name in tables and figures; ``variant`` (its ``method``
+    option) names a variant that has a label of its own."""
+    if isinstance(variant, str) and f"{solver}:{variant}" in METHOD_LABELS:
+        return METHOD_LABELS[f"{solver}:{variant}"]
     return METHOD_LABELS.get(solver, solver)
 
 
@@ -43,7 +49,8 @@ def runs(tracker, experiment: str, hashes=None) -> pd.DataFrame:
             frame[key] = column.where(column.notna(), spec.default)
             if isinstance(spec.default, (int, float)):
                 frame[key] = pd.to_numeric(frame[key])
-    frame["method"] = frame["solver.name"].map(method_label)
+    variants = frame["solver.method"] if "solver.method" in frame else [None] * len(frame)
+    frame["method"] = [method_label(s, v) for s, v in zip(frame["solver.name"], variants)]
     return frame.reset_index(drop=True)
 
 
