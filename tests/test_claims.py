@@ -189,3 +189,67 @@ def test_verdicts_from_fewer_runs_than_the_full_scale_are_provisional():
     assert smart["3DMPE (paper)"] == f"{HOLDS}, provisional (4 runs per group; the full scale has 16)"
     same = claims_table({"paper-smart-init": frame}, full_sizes={"paper-smart-init": 4})
     assert same[same["experiment"] == "paper-smart-init"].iloc[0]["3DMPE (paper)"] == HOLDS
+
+
+def test_smart_init_combines_groups_by_geometric_mean():
+    frame = init_runs(3.0, 0.1)
+    # chair gains 100x, car 1x: geometric mean 10x holds; the worst group alone would not
+    frame.loc[(frame["shape"] == "car") & (frame["init"] == "random"), "cd_x100"] = 0.1
+    frame.loc[(frame["shape"] == "chair") & (frame["init"] == "random"), "cd_x100"] = 10.0
+    verdict = smart_beats_random(frame, "sgd", factor=5)
+    assert verdict.verdict == HOLDS and "geometric mean 10×" in verdict.numbers
+    assert "min 1×, max 100×" in verdict.numbers
+    # and one huge group cannot carry the others: 1000x and three at 1x is 5.6x < 10
+    frame.loc[frame["init"] == "random", "cd_x100"] = 0.1
+    frame.loc[(frame["shape"] == "chair") & (frame["projections"] == "fixed")
+              & (frame["init"] == "random"), "cd_x100"] = 100.0
+    verdict = smart_beats_random(frame, "sgd", factor=10)
+    assert verdict.verdict == FAILS and "geometric mean 5.62×" in verdict.numbers
+
+
+def test_good_where_takes_the_median_run_of_each_group():
+    frame = level_runs("views", [4, 5], lambda k: 0.05)
+    wild = frame.groupby(["views", "projections"]).head(1).index  # one run in three per group
+    frame.loc[wild, "cd_x100"] = 30.0  # a mean would be 10, far above the line
+    verdict = good_where(frame, "sgd", column="views", among=(4, 5))
+    assert verdict.verdict == HOLDS and "worst 0.05" in verdict.numbers
+    frame.loc[frame.groupby(["views", "projections"]).nth(1).index, "cd_x100"] = 30.0
+    assert good_where(frame, "sgd", column="views", among=(4, 5)).verdict == FAILS
+
+
+def speed_runs(speedup, cd_ratio, points=(128, 256, 512)):
+    """sgd and refine runs; ``speedup`` and ``cd_ratio`` (refine's CD / sgd's) per N."""
+    rows = []
+    for n, setting, seed in itertools.product(points, ["fixed", "variable"], range(3)):
+        for solver in ("sgd", "refine"):
+            fast = solver == "refine"
+            rows.append({"solver.name": solver, "points": n, "projections": setting, "seed": seed,
+                         "runtime_s": (1.0 / speedup(n) if fast else 1.0) * (1 + 0.01 * seed),
+                         "cd_x100": (cd_ratio(n) if fast else 1.0) * 0.02})
+    return runs(rows)
+
+
+def test_ours_faster_needs_the_speed_and_the_accuracy_in_every_group():
+    assert faster_and_as_exact(speed_runs(lambda n: 20.0, lambda n: 1e-6), "refine").verdict == HOLDS
+    slow_somewhere = speed_runs(lambda n: 3.0 if n == 512 else 20.0, lambda n: 1e-6)
+    verdict = faster_and_as_exact(slow_somewhere, "refine")
+    assert verdict.verdict == FAILS and "3× to 20×" in verdict.numbers
+    worse_somewhere = speed_runs(lambda n: 20.0, lambda n: 1.5 if n == 128 else 1e-6)
+    verdict = faster_and_as_exact(worse_somewhere, "refine")
+    assert verdict.verdict == FAILS and "no worse in 67% of them" in verdict.numbers
+    only_sgd = speed_runs(lambda n: 20.0, lambda n: 1e-6)
+    assert faster_and_as_exact(only_sgd[only_sgd["solver.name"] == "sgd"],
+                               "refine").verdict == NOT_ENOUGH
+
+
+def test_runtime_claims_report_time_per_iteration_and_iterations():
+    # runtime grows with K only because early stopping runs more iterations
+    frame = runtime_runs(lambda k: 0.1 * k)
+    frame["iterations"] = frame["views"] * 10
+    total = linear_runtime(frame, "sgd")
+    per_iteration = linear_runtime(frame, "sgd", measure="iteration")
+    assert total.verdict == HOLDS and "median iterations 20 at K=2 to 80 at K=8" in total.numbers
+    assert per_iteration.verdict == FAILS  # flat: 0.01 s per iteration at every K
+    fixed = frame.assign(projections="fixed")
+    assert flat_runtime(fixed, "sgd").verdict == FAILS
+    assert flat_runtime(fixed, "sgd", measure="iteration").verdict == HOLDS
