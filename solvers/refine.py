@@ -135,8 +135,10 @@ def solve_refine(observations: Observations, *, random_state=None,
     solution. When the descent from it ends at a relative stress above 1e-10
     (noisy views, where the algebraic start can land in a poor basin), refine
     also descends from the paper's smart start and keeps the lower objective.
-    The result is never worse than the start: if the minimiser ends higher,
-    the start is returned.
+    With ``outliers="keep"`` the result is never worse than the start: if the
+    minimiser ends higher, the start is returned. Rejecting observations
+    trades the paper's stress for a fit that the corrupted rows do not bend,
+    so its Eq. 1 may end above the start's; ``info["rejected"]`` counts them.
     """
     rng = np.random.default_rng(random_state)
     start = solve_factorize(observations, random_state=rng)
