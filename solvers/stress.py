@@ -1,4 +1,4 @@
-"""The 3DMPE stress (paper Eq. 1) and its gradient, vectorised per view.
+"""The 3DMPE stress (paper Eq. 1) and its gradient, one view at a time.
 
     S(X, P) = sum_k sum_{i>j} a_i^k a_j^k (D^k_ij - ||P^k x_i - P^k x_j||)^2
 
@@ -8,9 +8,12 @@ B_ij = w_ij (D_ij - e_ij) / e_ij (w is the minibatch mask, symmetric). Then
     dS/dy_i = -2 sum_j B_ij (y_i - y_j)   i.e.   G_Y = -2 (diag(B 1) - B) Y,
 
 and the chain rule through Y = X_vis P^T gives G_X[vis] += G_Y P and
-G_P = G_Y^T X_vis. Everything is dense array work over row blocks of the
-view's distance matrix (e from scipy's cdist), so memory stays bounded and no
-Python loop touches a pair.
+G_P = G_Y^T X_vis. The default ``kernel="compiled"`` evaluates a view in one
+fused pass over its pairs i < j (:mod:`.kernels`), reading each input distance
+once and making no n x n temporary. ``kernel="numpy"`` is the earlier
+formulation, dense array work over row blocks of the view's distance matrix
+(e from scipy's cdist), kept as the reference the compiled kernel is checked
+and benchmarked against.
 """
 
 from __future__ import annotations
@@ -21,6 +24,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
+from . import kernels
 from .base import Observations
 
 # Rows per block: keeps each temporary at about 4M float64 entries (32 MB).
@@ -50,7 +54,8 @@ def sparse_pairs(Y: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, n
     return pairs // n, pairs % n
 
 
-LOSSES = ("l2", "huber", "soft_l1")
+LOSSES = ("l2", "huber", "soft_l1")  # in the order of the kernels' loss codes
+KERNELS = ("compiled", "numpy")
 
 
 def _loss(r: np.ndarray, loss: str, scale: float) -> tuple[np.ndarray, np.ndarray]:
@@ -85,8 +90,12 @@ class Stress:
     it, so that corrupted distances and wrong correspondences pull less.
     """
 
-    def __init__(self, observations: Observations, loss: str = "l2", scale: float = 1.0):
-        self.loss, self.scale = loss, float(scale)
+    def __init__(self, observations: Observations, loss: str = "l2", scale: float = 1.0,
+                 kernel: str = "compiled"):
+        if kernel not in KERNELS:
+            raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
+        self.loss, self.scale, self.kernel = loss, float(scale), kernel
+        self._loss_code = LOSSES.index(loss)
         self.n_points = observations.n_points
         self.ids = [view.ids for view in observations.views]
         # Per view: a dense distance matrix, or (i, j, d) over a sparse pair set.
@@ -99,7 +108,7 @@ class Stress:
                 self.D.append(None)
                 self.pairs.append((i, j, d))
             else:
-                self.D.append(np.asarray(view.distance_matrix(), dtype=np.float64))
+                self.D.append(np.ascontiguousarray(view.distance_matrix(), dtype=np.float64))
                 self.pairs.append(None)
         self.n_pairs = sum(len(p[0]) if p else len(i) * (len(i) - 1) // 2
                            for i, p in zip(self.ids, self.pairs))
@@ -111,7 +120,7 @@ class Stress:
         each squared residual counting alpha_i^k alpha_j^k times. Shares the
         distances."""
         out = copy.copy(self)
-        out.alpha = [None if a is None else np.asarray(a, dtype=np.float64) for a in alpha]
+        out.alpha = [None if a is None else np.ascontiguousarray(a, dtype=np.float64) for a in alpha]
         return out
 
     def row_residuals(self, X: np.ndarray, P: np.ndarray, among: list) -> list[np.ndarray]:
@@ -163,6 +172,9 @@ class Stress:
 
     def _view(self, k: int, Y: np.ndarray, mask: np.ndarray | None, want_grad: bool):
         """Stress of view k and, if asked, dS/dY, for image points Y (n_k x 2)."""
+        if self.kernel == "compiled":
+            return kernels.view_stress(self.pairs[k], self.D[k], Y, mask, self.alpha[k],
+                                       self._loss_code, self.scale, want_grad)
         if self.pairs[k] is not None:
             return self._sparse_view(k, Y, mask, want_grad)
         D = self.D[k]

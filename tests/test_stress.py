@@ -56,3 +56,61 @@ def test_minibatch_masks_are_symmetric_and_drop_pairs(rng):
     full = S.value(X, scene.projections)
     batch = S.value(X, scene.projections, masks)
     assert 0.2 * full < batch < 0.4 * full
+
+
+def _with_coordinates(obs, X, P):
+    """The same views given as 2D coordinates (the keypoints path)."""
+    from mpe3d.solvers.base import Observations, View
+
+    views = tuple(View(ids=v.ids, coordinates=X[v.ids] @ P[k].T) for k, v in enumerate(obs.views))
+    return Observations(n_points=obs.n_points, views=views, projections=obs.projections)
+
+
+def _relative_difference(a, b):
+    worst = abs(a[0] - b[0]) / abs(b[0])
+    for x, y in zip(a[1:], b[1:]):
+        worst = max(worst, float(np.max(np.abs(x - y)) / np.max(np.abs(y))))
+    return worst
+
+
+@pytest.mark.parametrize("loss", ["l2", "huber", "soft_l1"])
+@pytest.mark.parametrize("pairs", ["dense", "sparse"])
+@pytest.mark.parametrize("extra", ["plain", "minibatch", "weights"])
+def test_the_compiled_kernel_matches_the_numpy_reference(rng, monkeypatch, loss, pairs, extra):
+    from mpe3d.solvers import stress as stress_mod
+
+    _, scene, obs = scene_and_observations(points=150, views=4)
+    if pairs == "sparse":  # coordinates past the dense limit: scored on a sparse pair set
+        monkeypatch.setattr(stress_mod, "DENSE_LIMIT", 20)
+        obs = _with_coordinates(obs, scene.points, scene.projections)
+    X = scene.points + 0.05 * rng.normal(size=scene.points.shape)
+    P = project_rows(scene.projections + 0.05 * rng.normal(size=scene.projections.shape))
+    compiled, numpy = (Stress(obs, loss, 0.02, kernel=k) for k in ("compiled", "numpy"))
+    assert compiled.sparse == numpy.sparse == (pairs == "sparse")
+    masks = compiled.sample_masks(0.4, rng) if extra == "minibatch" else None
+    if extra == "weights":
+        alpha = [rng.uniform(0, 1, len(ids)) for ids in obs_ids(obs)]
+        compiled, numpy = compiled.weighted(alpha), numpy.weighted(alpha)
+    got = compiled.value_and_grad(X, P, masks, want_P=True)
+    want = numpy.value_and_grad(X, P, masks, want_P=True)
+    assert _relative_difference(got, want) <= 1e-12
+    assert compiled.value(X, P, masks) == pytest.approx(want[0], rel=1e-12)
+
+
+def obs_ids(obs):
+    return [v.ids for v in obs.views]
+
+
+def test_the_compiled_kernel_is_the_same_in_every_call(rng):
+    """Serial loops in a fixed order: a repeat gives the same bits."""
+    _, scene, obs = scene_and_observations(points=120)
+    X = scene.points + 0.05 * rng.normal(size=scene.points.shape)
+    first = Stress(obs).value_and_grad(X, scene.projections)
+    again = Stress(obs).value_and_grad(X, scene.projections)
+    assert first[0] == again[0] and np.array_equal(first[1], again[1])
+
+
+def test_an_unknown_kernel_is_refused():
+    _, _, obs = scene_and_observations(points=30)
+    with pytest.raises(ValueError, match="kernel"):
+        Stress(obs, kernel="fortran")
