@@ -17,8 +17,8 @@ import numpy as np
 from scipy.optimize import minimize
 
 
+from . import kernels
 from .base import Choice, Interval, Observations, Reconstruction, register
-from .baseline import SMART_START_IMPORTS
 from .factorize import solve_factorize
 from .stress import LOSSES, Stress
 
@@ -105,8 +105,7 @@ _PARAMETER_CONSTRAINTS = {
 
 
 @register("refine", constraints=_PARAMETER_CONSTRAINTS, paper=False,
-          summary="ours: factorize, then full-batch L-BFGS on the stress (robust losses optional)",
-          imports=SMART_START_IMPORTS)
+          summary="ours: factorize, then full-batch L-BFGS on the stress (robust losses optional)")
 def solve_refine(observations: Observations, *, random_state=None,
                  loss: str = "l2", max_iter: int = 500, tol: float = 1e-12,
                  outliers: str = "reject") -> Reconstruction:
@@ -229,13 +228,15 @@ def _place_weak(stress, X, P, weak, rejected, total) -> np.ndarray:
         rows = _rows_of_point(stress, X, P, position[:, i], rejected, anchor)
         if len(rows) < 2:
             continue
-        few = [(Pk, Y[::-(-len(d) // _SCOUTS)], d[::-(-len(d) // _SCOUTS)]) for Pk, Y, d in rows]
+        few = _stack([(Pk, Y[::-(-len(d) // _SCOUTS)], d[::-(-len(d) // _SCOUTS)])
+                      for Pk, Y, d in rows])
         best, best_cost = X[i], np.inf
         for a, b in itertools.combinations(range(len(rows)), 2):
-            x = _multilaterate(X[i], [few[a], few[b]])
+            x = _multilaterate(X[i], _pick(few, (a, b)))
             cost = np.minimum(_row_misfits(x, few), line).sum()
             if cost < best_cost:
                 best, best_cost = x, cost
+        rows = _stack(rows)
         for last in range(_REWEIGHTS, 0, -1):  # each row weighted by its inverse misfit variance
             using = rows if last == 1 else few
             weights = 1.0 / np.maximum(_row_misfits(best, using), line / ROW_SIGMAS) ** 2
@@ -258,28 +259,35 @@ def _rows_of_point(stress, X, P, position, rejected, anchor):
     return rows
 
 
-def _row_misfits(x, rows) -> np.ndarray:
-    return np.array([np.median(np.abs(d - np.linalg.norm(x @ Pk.T - Y, axis=1))) for Pk, Y, d in rows])
+def _stack(rows):
+    """Rows as one set of anchors for the kernels: (P per anchor, images,
+    distances, each row's start)."""
+    sizes = [len(d) for _, _, d in rows]
+    P = np.ascontiguousarray(np.concatenate([np.broadcast_to(Pk, (n, 2, 3)) for (Pk, _, _), n
+                                             in zip(rows, sizes)]))
+    return (P, np.concatenate([Y for _, Y, _ in rows]), np.concatenate([d for _, _, d in rows]),
+            np.concatenate([[0], np.cumsum(sizes)]))
 
 
-def _multilaterate(x, rows, weights=None) -> np.ndarray:
+def _pick(stacked, which):
+    """The rows ``which`` of a stack, as a stack."""
+    P, Y, d, starts = stacked
+    take = np.concatenate([np.arange(starts[r], starts[r + 1]) for r in which])
+    sizes = [starts[r + 1] - starts[r] for r in which]
+    return P[take], Y[take], d[take], np.concatenate([[0], np.cumsum(sizes)])
+
+
+def _row_misfits(x, stacked) -> np.ndarray:
+    P, Y, d, starts = stacked
+    return kernels.row_misfits(np.asarray(x, dtype=np.float64), P, Y, d, starts)
+
+
+def _multilaterate(x, stacked, weights=None) -> np.ndarray:
     """The point whose projected distances to the rows' anchors fit theirs
     (least squares, each row's residuals weighted), by Gauss-Newton from x."""
-    P = np.concatenate([np.broadcast_to(Pk, (len(d), 2, 3)) for Pk, _, d in rows])
-    Y = np.concatenate([Y for _, Y, _ in rows])
-    d = np.concatenate([d for _, _, d in rows])
-    root = np.ones(len(d)) if weights is None else np.concatenate(
-        [np.full(len(row[2]), np.sqrt(w)) for row, w in zip(rows, weights)])
-    for _ in range(_PLACING_STEPS):
-        diff = np.einsum("nij,j->ni", P, x) - Y
-        e = np.maximum(np.linalg.norm(diff, axis=1), 1e-12)
-        r = d - e
-        J = -np.einsum("ni,nij->nj", diff / e[:, None], P)  # d r / d x
-        step = np.linalg.lstsq(root[:, None] * J, -root * r, rcond=None)[0]
-        x = x + step
-        if np.linalg.norm(step) <= 1e-9 * (1.0 + np.linalg.norm(x)):
-            break
-    return x
+    P, Y, d, starts = stacked
+    root = np.ones(len(d)) if weights is None else np.repeat(np.sqrt(weights), np.diff(starts))
+    return kernels.multilaterate(np.asarray(x, dtype=np.float64), P, Y, d, root, _PLACING_STEPS)
 
 
 def _weak(stress, rejected) -> np.ndarray:

@@ -37,7 +37,7 @@ from scipy.spatial.distance import cdist
 
 
 from .base import Choice, Interval, Observations, Reconstruction, register
-from .baseline import SMART_START_IMPORTS, fit_projections, mds_embedding
+from .baseline import fit_projections, mds_embedding
 from .stress import Stress, project_rows
 
 
@@ -140,8 +140,7 @@ _PARAMETER_CONSTRAINTS = {
 
 
 @register("sgd", constraints=_PARAMETER_CONSTRAINTS, paper=True,
-          summary="the paper's 3DMPE: minibatch SGD with an adaptive step from the smart start",
-          imports=SMART_START_IMPORTS)
+          summary="the paper's 3DMPE: minibatch SGD with an adaptive step from the smart start")
 def solve_sgd(observations: Observations, *, init: str = "smart", random_state=None,
               c: float = 1.0, max_iter: int = 300, tol: float = 1e-4, step: str = "mm",
               baseline_method: str = "smacof") -> Reconstruction:
