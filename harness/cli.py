@@ -11,9 +11,10 @@ import sys
 import time
 from pathlib import Path
 
-from .config import config_from_file, describe_keys, make_config, parse_override
+# Only light modules at the top: `mpe3d --help` must not pay for numpy,
+# scikit-learn or MLflow. Each command imports what it runs.
+from .config import BACKENDS, config_from_file, describe_keys, make_config, parse_override
 from ..errors import MpeError
-from .runner import BACKENDS
 
 
 class _Parser(argparse.ArgumentParser):

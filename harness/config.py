@@ -28,6 +28,7 @@ PROJECTIONS = ("fixed", "variable")
 OBSERVE = ("distances", "coordinates")
 INITS = ("smart", "random")
 ALIGNS = ("rigid", "ransac4")
+BACKENDS = ("loky", "dask")  # where a sweep's runs are computed (the runner's choice)
 
 
 @dataclass(frozen=True)

@@ -30,14 +30,13 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
-from .config import RunConfig
+from .config import BACKENDS, RunConfig
 from ..errors import MpeError, StoreError
 from .execute import RunRecord, failed_record, run_record
 from .journal import Journal
 from .ownership import Heartbeat, Owner
 from .sweep import Sweep
 
-BACKENDS = ("loky", "dask")
 POLL_S = 2.0  # how often a sweep looks again at a claim of another sweep it waits for
 DRAIN_S = 10.0  # after the store fails: how long runs in flight may still finish
 log = logging.getLogger(__name__)

@@ -1,11 +1,13 @@
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import trimesh
 from PIL import Image
 
-from .helpers import run_cli
+from .helpers import mpe3d_command, run_cli
 
 CONTRACT = {"config", "cd", "cd_mean", "emd", "emd_mean", "roa", "stress", "iterations",
             "runtime_s", "visible_per_view"}
@@ -130,3 +132,16 @@ def test_every_option_of_every_subcommand_has_a_one_line_help():
                 continue
             label = f"mpe3d {name} {'/'.join(action.option_strings) or action.dest}"
             assert action.help and "\n" not in action.help.strip(), label
+
+
+def test_help_imports_nothing_heavy():
+    """`mpe3d --help` and `mpe3d run --help` answer from the light modules: the
+    command line may not import numpy, scikit-learn, MLflow or numba to parse."""
+    probe = ("import sys; from mpe3d.harness import cli; cli.build_parser(); "
+             "print(sorted(m for m in ('numpy', 'sklearn', 'mlflow', 'numba', 'pandas', 'scipy') "
+             "if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"
+    for args in (["--help"], ["run", "--help"], ["sweep", "--help"]):
+        done = subprocess.run(mpe3d_command() + args, capture_output=True, text=True)
+        assert done.returncode == 0 and "usage" in done.stdout
