@@ -551,13 +551,40 @@ class _Structure:
                                    axis=1)  # (T, pv + ns)
         # each (observation, axis) gives the c entries of row 3 * point + axis
         c = self.cols.shape[1]
-        rows = (3 * tracks.point[:, None] + np.arange(3)).ravel()  # (T * 3,)
-        order = np.argsort(rows, kind="stable")
-        self.y_order = order
-        counts = np.bincount(rows, minlength=3 * tracks.n_points) * c
+        self.y_order = _row_order(tracks.point, tracks.n_points)
+        counts = np.repeat(np.bincount(tracks.point, minlength=tracks.n_points), 3) * c
         self.y_indptr = np.concatenate([[0], np.cumsum(counts)])
-        self.y_indices = np.repeat(self.cols, 3, axis=0)[order].ravel()
-        self.obs_index = (self.cols[:, :, None] * self.size + self.cols[:, None, :])
+        self.y_indices = self.cols[self.y_order // 3].ravel()
+        # a view's observations share their camera columns: its block of the
+        # camera system is one c x c product, placed at these columns
+        self.view = tracks.view
+        self.view_cols = [np.concatenate([pv * k + np.arange(pv), K * pv + np.arange(ns)])
+                          for k in range(K)]
+
+    def camera_system(self, weight: np.ndarray, d_c: np.ndarray) -> np.ndarray:
+        """V = sum_t d_c^T w d_c, accumulated view by view (no T x c x c array)."""
+        V = np.zeros((self.size, self.size))
+        c = d_c.shape[2]
+        for k, cols in enumerate(self.view_cols):
+            rows = np.flatnonzero(self.view == k)
+            if len(rows):
+                J = d_c[rows].reshape(-1, c)
+                V[np.ix_(cols, cols)] += (np.repeat(weight[rows], 2)[:, None] * J).T @ J
+        return V
+
+
+def _row_order(point: np.ndarray, n_points: int) -> np.ndarray:
+    """argsort(3 * point[:, None] + [0, 1, 2]) (stable), as a counting sort:
+    row 3p + a lists (t, a) for the observations t of point p in order."""
+    by_point = np.argsort(point, kind="stable")
+    counts = np.bincount(point, minlength=n_points)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    p = point[by_point]
+    rank = np.arange(len(point)) - start[p]  # position within its point's observations
+    order = np.empty(3 * len(point), dtype=np.int64)
+    for a in range(3):
+        order[3 * start[p] + a * counts[p] + rank] = 3 * by_point + a
+    return order
 
 
 def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
@@ -606,9 +633,7 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
         g_x = _sum_by(point, np.einsum("tai,ta->ti", d_x, wr), N)
         g_c = np.bincount(structure.cols.ravel(), minlength=structure.size,
                           weights=np.einsum("taj,ta->tj", d_c, wr).ravel())
-        V = np.bincount(structure.obs_index.ravel(), minlength=structure.size ** 2,
-                        weights=((weight[:, None, None] * d_c).transpose(0, 2, 1) @ d_c).ravel())
-        V = V.reshape(structure.size, structure.size).astype(float)
+        V = structure.camera_system(weight, d_c)
         while True:
             step = _damped_step(U, V, W, g_x, g_c, lam, structure, point)
             if step is not None:

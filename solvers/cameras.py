@@ -21,6 +21,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .linalg import matvec_by_group
+
 CAMERAS = ("orthographic", "scaled", "perspective")
 # The affine camera u = A x + t (A any 2x3) is no camera model a user picks: it is
 # the start, and the floor that no metric model's error can go below.
@@ -127,13 +129,12 @@ class Cameras:
         """u_t for the observations (view[t], point[t]) of the points X, (T, 2)."""
         if self.model == AFFINE:
             A = self.params[:, :6].reshape(-1, 2, 3)
-            return np.einsum("tij,tj->ti", A[view], X[point]) + self.params[view, 6:8]
+            return matvec_by_group(A, view, X[point]) + self.params[view, 6:8]
         if self.model == MATRIX:
-            p = np.einsum("tij,tj->ti", self.rotations[view, :, :3], X[point]) \
-                + self.rotations[view, :, 3]
+            p = matvec_by_group(self.rotations[:, :, :3], view, X[point]) + self.rotations[view, :, 3]
             return p[:, :2] / p[:, 2:3]  # a matrix's overall sign is the user's: no cheirality
         R = self.current_rotations()
-        q = np.einsum("tij,tj->ti", R[view], X[point])
+        q = matvec_by_group(R, view, X[point])
         if self.model != "perspective":
             s = self.scale()[view, None]
             return s * q[:, :2] + self.params[view, 3:5]

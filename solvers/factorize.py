@@ -26,7 +26,7 @@ from scipy.optimize import least_squares
 
 from .base import Interval, Observations, Reconstruction, register
 from .degenerate import check_geometry, warn
-from .linalg import elongation
+from .linalg import elongation, gram_by_group, matvec_by_group, pinv_psd
 from .stress import Stress, project_rows
 
 
@@ -58,7 +58,7 @@ def _solve_points(obs, view, point, P, rhs):
     """
     N, K = obs.n_points, obs.n_views
     PtP = np.einsum("kai,kaj->kij", P, P)
-    M_inv = np.linalg.pinv(_sum_by(point, PtP[view], N))  # points in < 2 views: min-norm
+    M_inv = pinv_psd(_sum_by(point, PtP[view], N))  # points in < 2 views: min-norm
     c = _sum_by(point, np.einsum("tai,tam->tim", P[view], rhs), N)  # (N, 3, m)
     sizes = np.bincount(view, minlength=K).astype(float)
     base = M_inv @ c  # X when every view mean is zero
@@ -141,18 +141,18 @@ def _fit_views(X, view, point, z, K, rows):
     """[L_k; t_k^T] from [x_i, 1] -> z_t over the observations in ``rows``: one 4x4
     least-squares system per view (views with no such rows come back zero)."""
     A = np.concatenate([X[point[rows]], np.ones((rows.sum(), 1))], axis=1)
-    AtA = _sum_by(view[rows], np.einsum("ta,tb->tab", A, A), K)
-    Atz = _sum_by(view[rows], np.einsum("ta,tb->tab", A, z[rows]), K)
-    Lt = np.einsum("kab,kbc->kac", np.linalg.pinv(AtA), Atz)  # (K, 4, 2)
+    AtA = gram_by_group(A, view[rows], K)
+    Atz = gram_by_group(A, view[rows], K, z[rows])
+    Lt = np.einsum("kab,kbc->kac", pinv_psd(AtA), Atz)  # (K, 4, 2)
     return Lt[:, :3, :], Lt[:, 3, :]
 
 
 def _fit_points(L, t, view, point, z, N, rows):
     """(sum L_k L_k^T) x_i = sum L_k (z_t - t_k) over ``rows``: a 3x3 system per point."""
     v, p = view[rows], point[rows]
-    lhs = _sum_by(p, np.einsum("tab,tcb->tac", L[v], L[v]), N)
-    rhs = _sum_by(p, np.einsum("tab,tb->ta", L[v], z[rows] - t[v]), N)
-    return np.einsum("nij,nj->ni", np.linalg.pinv(lhs), rhs)
+    lhs = _sum_by(p, np.einsum("kab,kcb->kac", L, L)[v], N)  # L_k L_k^T: once per view
+    rhs = _sum_by(p, matvec_by_group(L, v, z[rows] - t[v]), N)
+    return np.einsum("nij,nj->ni", pinv_psd(lhs), rhs)
 
 
 def _affine_start(view, point, z, N, K):

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from .factorize import _sum_by
+from .linalg import pinv_psd
 
 PAIRS = 30  # two-view hypotheses tried per point
 _REFINEMENTS = 2  # least-squares refits on a hypothesis's inliers
@@ -28,7 +29,7 @@ def least_squares_points(A, b, point, n_points):
     """x_i minimising sum_t ||A_t x_i - b_t||^2 over each point's observations."""
     lhs = _sum_by(point, np.einsum("tai,taj->tij", A, A), n_points)
     rhs = _sum_by(point, np.einsum("tai,ta->ti", A, b), n_points)
-    return np.einsum("nij,nj->ni", np.linalg.pinv(lhs), rhs)
+    return np.einsum("nij,nj->ni", pinv_psd(lhs), rhs)
 
 
 def robust_points(X, cameras, tracks, points, tau, seed: int = 0):
