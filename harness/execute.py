@@ -79,6 +79,8 @@ def _run(config: RunConfig) -> RunResult:
     scores.update({f"seen_ge_{m}": n for m, n in enumerate(scene.seen_at_least, start=1)})
     if "unplaced" in recon.info:
         scores["unplaced"] = len(recon.info["unplaced"])
+    if "rejected" in recon.info:  # refine: observations taken for corrupted
+        scores["rejected"] = int(recon.info["rejected"])
     return RunResult(config=config, metrics=scores, scene=scene, reconstruction=recon,
                      aligned=aligned, facts=facts, wall_s=time.perf_counter() - start)
 
