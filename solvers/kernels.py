@@ -1,18 +1,19 @@
-"""Compiled kernels of the 3DMPE stress (paper Eq. 1): one pass over a view's pairs.
+"""Compiled passes: the 3DMPE stress (paper Eq. 1) one view at a time, SMACOF's
+Guttman transform, and placing one point against anchors.
 
-For each pair i < j of a view the kernel forms the image distance
+For each pair i < j of a view the stress kernel forms the image distance
 e_ij = ||y_i - y_j||, the residual r_ij = D_ij - e_ij, its weight
 w_ij = a_i a_j (the visibility of Eq. 1 taken into [0, 1]) and minibatch bit,
 the loss rho(r) and phi(r) = rho'(r) / 2, and adds both rows' gradient terms
 
     dS/dy_i += -2 w phi(r) (y_i - y_j) / e,   dS/dy_j -= the same,
 
-(the kernels sum the terms without the factor 2, and ``view_stress`` doubles
-the sums, which is exact)
 so that no n x n temporary is ever made: the input distances are read once.
-The loops are serial and in a fixed order, so a result is the same in every
-process, thread count and backend. Numba caches the machine code on disk
-(``cache=True``): a process loads it instead of compiling again.
+(The kernels sum the terms without the factor 2 and ``view_stress`` doubles
+the sums, which is exact.) The loops are serial and in a fixed order, so a
+result is the same bits in every process, thread count and backend. Numba
+caches the machine code on disk (``cache=True``): a process loads it instead
+of compiling again, and :func:`warm` does so before any solver's clock starts.
 
 Optional inputs are passed as empty arrays rather than ``None``, so that each
 kernel has one signature and one compilation.

@@ -113,6 +113,7 @@ class Stress:
         self.n_pairs = sum(len(p[0]) if p else len(i) * (len(i) - 1) // 2
                            for i, p in zip(self.ids, self.pairs))
         self.alpha = [None] * len(self.ids)  # per view: a weight per visible point, or None
+        self._kept = [None] * len(self.ids)  # per view: its points of weight > 0 (weighted)
 
     def weighted(self, alpha: list) -> "Stress":
         """The same stress with each observation (view k, point i) weighted:
@@ -121,7 +122,24 @@ class Stress:
         distances."""
         out = copy.copy(self)
         out.alpha = [None if a is None else np.ascontiguousarray(a, dtype=np.float64) for a in alpha]
+        out._kept = [out._compact(k) for k in range(len(out.ids))]
         return out
+
+    def _compact(self, k: int):
+        """View k without its points of weight 0, when it drops at least a tenth
+        of them: (their positions, the distances among the rest, their weights
+        or None if all 1). Every pair of a dropped point has weight 0, so the
+        compiled kernel on the rest adds the same terms in the same order and
+        skips only zeros, at a fraction of the pairs."""
+        a = self.alpha[k]
+        if a is None or self.pairs[k] is not None or self.kernel != "compiled":
+            return None
+        keep = np.flatnonzero(a > 0)
+        if len(keep) > 0.9 * len(a):
+            return None
+        rest = a[keep]
+        return keep, np.ascontiguousarray(self.D[k][np.ix_(keep, keep)]), \
+            None if np.all(rest == 1.0) else np.ascontiguousarray(rest)
 
     def row_residuals(self, X: np.ndarray, P: np.ndarray, among: list) -> list[np.ndarray]:
         """Per view, each row's median |D_ij - ||P(x_i - x_j)||| over the points j
@@ -173,6 +191,15 @@ class Stress:
     def _view(self, k: int, Y: np.ndarray, mask: np.ndarray | None, want_grad: bool):
         """Stress of view k and, if asked, dS/dY, for image points Y (n_k x 2)."""
         if self.kernel == "compiled":
+            if self._kept[k] is not None and mask is None:
+                keep, D, alpha = self._kept[k]
+                total, g = kernels.view_stress(None, D, Y[keep], None, alpha, self._loss_code,
+                                               self.scale, want_grad)
+                if not want_grad:
+                    return total, None
+                grad = np.zeros_like(Y)
+                grad[keep] = g
+                return total, grad
             return kernels.view_stress(self.pairs[k], self.D[k], Y, mask, self.alpha[k],
                                        self._loss_code, self.scale, want_grad)
         if self.pairs[k] is not None:

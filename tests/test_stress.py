@@ -75,7 +75,7 @@ def _relative_difference(a, b):
 
 @pytest.mark.parametrize("loss", ["l2", "huber", "soft_l1"])
 @pytest.mark.parametrize("pairs", ["dense", "sparse"])
-@pytest.mark.parametrize("extra", ["plain", "minibatch", "weights"])
+@pytest.mark.parametrize("extra", ["plain", "minibatch", "weights", "rejected", "rejected+weights"])
 def test_the_compiled_kernel_matches_the_numpy_reference(rng, monkeypatch, loss, pairs, extra):
     from mpe3d.solvers import stress as stress_mod
 
@@ -88,9 +88,17 @@ def test_the_compiled_kernel_matches_the_numpy_reference(rng, monkeypatch, loss,
     compiled, numpy = (Stress(obs, loss, 0.02, kernel=k) for k in ("compiled", "numpy"))
     assert compiled.sparse == numpy.sparse == (pairs == "sparse")
     masks = compiled.sample_masks(0.4, rng) if extra == "minibatch" else None
-    if extra == "weights":
-        alpha = [rng.uniform(0, 1, len(ids)) for ids in obs_ids(obs)]
+    if extra != "plain" and extra != "minibatch":
+        # "rejected": refine's alpha = 0 for 30% of the observations, 1 for the
+        # rest (the compiled path drops those points from the view)
+        alpha = [rng.uniform(0, 1, len(ids)) if extra != "rejected" else np.ones(len(ids))
+                 for ids in obs_ids(obs)]
+        if extra.startswith("rejected"):
+            for a in alpha:
+                a[rng.random(len(a)) < 0.3] = 0.0
         compiled, numpy = compiled.weighted(alpha), numpy.weighted(alpha)
+        assert any(kept is not None for kept in compiled._kept) == (
+            extra.startswith("rejected") and pairs == "dense")
     got = compiled.value_and_grad(X, P, masks, want_P=True)
     want = numpy.value_and_grad(X, P, masks, want_P=True)
     assert _relative_difference(got, want) <= 1e-12
