@@ -2,8 +2,10 @@
 
     python benchmarks/solvers.py [--points 512 2048 8192] [--views 4 5 8]
         [--shapes chair airplane table] [--noise none distance:0.2:0.05 ...]
-        [--solvers sgd factorize refine] [--sgd-max-points 2048]
+        [--solvers sgd factorize refine refine:huber refine:soft_l1] [--sgd-max-points 2048]
 
+A solver written ``refine:LOSS`` is refine with that loss; its line carries its
+time over refine's (l2) in the same case.
 Each case builds one scene (each point in exactly 3 views) and hands the same
 observations to every solver. A line holds the solver's runtime, iterations,
 metrics, its speed-up over sgd measured in the same run, and its peak memory
@@ -47,10 +49,12 @@ def noise_keys(spec: str) -> dict:
 def measure(name: str, obs, scene, seed: int, memory: bool) -> dict:
     if memory:  # tracemalloc slows numpy down: off for timing runs
         tracemalloc.start()
+    name, _, loss = name.partition(":")
+    options = {"loss": loss} if loss else {}
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        rec = solvers.solve(name, obs, random_state=seed)
+        rec = solvers.solve(name, obs, random_state=seed, **options)
     seconds = time.perf_counter() - start
     out = {}
     if memory:
@@ -58,6 +62,7 @@ def measure(name: str, obs, scene, seed: int, memory: bool) -> dict:
         tracemalloc.stop()
     metrics, _ = evaluate(scene.points, rec.points, "rigid", np.random.default_rng(seed))
     return {"runtime_s": round(seconds, 4), "iterations": rec.iterations,
+            "ms_per_iteration": round(1e3 * rec.runtime_s / max(rec.iterations, 1), 3),
             "termination": rec.termination, "stress": rec.stress, "roa": metrics["roa"],
             "cd": metrics["cd"], "cd_mean": metrics["cd_mean"], "emd_mean": metrics["emd_mean"],
             **out}
@@ -91,7 +96,7 @@ def main(argv=None) -> int:
                         scene = build_scene(config, streams)
                         obs, _ = observe(scene, config, streams)
                         largest = max(v.size for v in obs.views)
-                        sgd_time = None
+                        sgd_time = refine_time = None
                         for name in args.solvers:
                             if name == "sgd" and N > args.sgd_max_points:
                                 continue
@@ -104,6 +109,10 @@ def main(argv=None) -> int:
                                 sgd_time = row["runtime_s"]
                             elif sgd_time:
                                 row["speedup_vs_sgd"] = round(sgd_time / row["runtime_s"], 1)
+                            if name == "refine":
+                                refine_time = row["runtime_s"]
+                            elif name.startswith("refine:") and refine_time:
+                                row["time_over_l2"] = round(row["runtime_s"] / refine_time, 2)
                             row["python"] = platform.python_version()
                             rows.append(row)
                             print(json.dumps(row), flush=True)
@@ -137,6 +146,21 @@ def summaries(rows: list[dict]) -> list[dict]:
         out.append({"target": "c: median CD of refine <= sgd under every noise case",
                     "median_cd": medians,
                     "met": all(m["refine"] <= m["sgd"] * (1 + 1e-9) for m in medians.values())})
+    robust = defaultdict(list)
+    for r in rows:
+        if "time_over_l2" in r:
+            robust[r["solver"]].append(r["time_over_l2"])
+    if robust:
+        out.append({"target": "e: refine's robust losses cost <= 1.5x l2 (median over cases)",
+                    "median_time_over_l2": {k: float(np.median(v)) for k, v in robust.items()},
+                    "worst_time_over_l2": {k: max(v) for k, v in robust.items()},
+                    "met": all(np.median(v) <= 1.5 for v in robust.values())})
+    sgd = [r["ms_per_iteration"] for r in rows if r["solver"] == "sgd"]
+    if sgd:
+        out.append({"target": "f: sgd time per iteration (ms)", "median": float(np.median(sgd)),
+                    "by_N": {N: float(np.median([r["ms_per_iteration"] for r in rows
+                                                 if r["solver"] == "sgd" and r["N"] == N]))
+                             for N in sorted({r["N"] for r in rows if r["solver"] == "sgd"})}})
     biggest = max((r["N"] for r in rows), default=0)
     big = [r for r in rows if r["N"] == biggest and r["solver"] != "sgd" and "solver_peak_mb" in r]
     if big:
