@@ -1,7 +1,7 @@
 """Stress-kernel benchmark: the compiled one-pass kernel against the NumPy reference.
 
     python benchmarks/stress_kernel.py [--points 512 1024 2048 4096] [--views 4 5 8]
-        [--losses l2 huber soft_l1] [--repeats 7]
+        [--losses l2 huber soft_l1] [--repeats 7] [--side-by-side 2]
 
 One JSON line per (N, K, loss): the time of one ``Stress.value_and_grad`` call
 (variable setting, so dS/dP too) with ``kernel="compiled"`` and with
@@ -11,19 +11,28 @@ largest difference between them relative to the reference's largest entry,
 over the stress, dS/dX and dS/dP. A summary line checks the targets: >= 3x at
 N=1024, K=5 (l2), every difference <= 1e-12, and each robust loss at most 1.5x
 the l2 time of the compiled kernel. Times are the median of ``--repeats``
-calls; the machine's load average is printed with each line.
+calls; the machine's load average is printed with each line. BLAS runs on one
+thread, as in every run of the harness (``execute.BLAS_THREADS``): otherwise
+the NumPy reference's matrix products take the other core and the ratio says
+nothing about a sweep, which gets its parallelism from running runs side by
+side. ``--side-by-side 2`` measures as a 2-core sweep runs: two processes time
+the same case at once, sharing the caches and memory bandwidth (each line then
+gives the mean of the two).
 """
 
 from __future__ import annotations
 
 import argparse
+import concurrent.futures as cf
 import json
 import os
 import time
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from mpe3d import make_config
+from mpe3d.harness.execute import BLAS_THREADS
 from mpe3d.harness.observe import build_scene, observe, seed_streams
 from mpe3d.solvers.sgd import random_projections
 from mpe3d.solvers.stress import LOSSES, Stress
@@ -64,7 +73,26 @@ def case(N: int, K: int, loss: str, repeats: int, seed: int) -> dict:
             "compiled_ms": round(1e3 * t_new, 3), "numpy_ms": round(1e3 * t_ref, 3),
             "speedup": round(t_ref / t_new, 2), "ns_per_pair": round(1e9 * t_new / pairs, 2),
             "max_rel_diff": relative_difference(new, ref),
-            "load_avg_1min": round(os.getloadavg()[0], 2), "cpus": os.cpu_count()}
+            "load_avg_1min": round(os.getloadavg()[0], 2), "cpus": os.cpu_count(),
+            "blas_threads": BLAS_THREADS}
+
+
+def _one(N, K, loss, repeats, seed):
+    with threadpool_limits(limits=BLAS_THREADS):
+        return case(N, K, loss, repeats, seed)
+
+
+def side_by_side(pool, copies: int, *args) -> dict:
+    """The case timed in ``copies`` processes at once; their mean times."""
+    rows = [f.result() for f in [pool.submit(_one, *args) for _ in range(copies)]]
+    out = dict(rows[0])
+    for key in ("compiled_ms", "numpy_ms"):
+        out[key] = round(float(np.mean([r[key] for r in rows])), 3)
+    out["speedup"] = round(out["numpy_ms"] / out["compiled_ms"], 2)
+    out["ns_per_pair"] = round(1e6 * out["compiled_ms"] / out["pairs"], 2)
+    out["max_rel_diff"] = max(r["max_rel_diff"] for r in rows)
+    out["side_by_side"] = copies
+    return out
 
 
 def summary(rows: list[dict]) -> dict:
@@ -88,15 +116,35 @@ def main(argv=None) -> int:
     parser.add_argument("--losses", nargs="+", choices=LOSSES, default=list(LOSSES))
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--side-by-side", type=int, default=1, metavar="COPIES",
+                        help="time each case in this many processes at once (a sweep's workers)")
     args = parser.parse_args(argv)
     rows = []
-    for N in args.points:
-        for K in args.views:
-            for loss in args.losses:
-                rows.append(case(N, K, loss, args.repeats, args.seed))
-                print(json.dumps(rows[-1]), flush=True)
+    with cf.ProcessPoolExecutor(args.side_by_side) if args.side_by_side > 1 else \
+            _Inline() as pool:
+        for N in args.points:
+            for K in args.views:
+                for loss in args.losses:
+                    rows.append(side_by_side(pool, args.side_by_side, N, K, loss, args.repeats,
+                                             args.seed))
+                    print(json.dumps(rows[-1]), flush=True)
     print(json.dumps(summary(rows)), flush=True)
     return 0
+
+
+class _Inline:
+    """A pool of one: runs the case in this process."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+    def submit(self, func, *args):
+        future = cf.Future()
+        future.set_result(func(*args))
+        return future
 
 
 if __name__ == "__main__":
