@@ -46,31 +46,79 @@ def _sum_by(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
     return out.reshape((size,) + values.shape[1:])
 
 
-def _solve_points(obs, view, point, P, rhs):
-    """Least-squares X for the fixed setting, for several right-hand sides.
+# Points per block of the fixed setting's elimination: keeps each (points, 3, 4K)
+# block near 50 MB at K = 8, so a million points never hold N x 3 x 4K at once.
+_POINT_BLOCK = 1 << 16
 
-    Minimises sum_t ||P^k x_i - s_k - r_t||^2 over X and s, where ``rhs``
-    holds, per observation t, 2D targets r_t (T x 2 x m) that sum to zero
-    within each view. Then s_k = P^k xbar_k, and with M_i = sum P^kT P^k the
-    normal equations read M_i x_i - sum_k P^kT P^k xbar_k = sum_t P^kT r_t:
-    the view means xbar_k are eliminated through a small 3K x 3K system
-    (singular along translations: its minimum-norm solution is used).
+
+class _FixedLinearSystem:
+    """X as a linear function of vec(H), X = Y(h), for the fixed setting.
+
+    Minimises sum_t ||P^k x_i - s_k - H_k z_t||^2 over X and s: with
+    M_i = sum P^kT P^k the normal equations read
+    M_i x_i - sum_k P^kT P^k xbar_k = sum_t P^kT H_k z_t, the view means xbar_k
+    eliminated through a small 3K x 3K system (singular along translations:
+    its minimum-norm solution is used). Y_i (3 x 4K) is formed block by block
+    of points, each time it is needed, instead of for all points at once.
     """
-    N, K = obs.n_points, obs.n_views
-    PtP = np.einsum("kai,kaj->kij", P, P)
-    M_inv = pinv_psd(_sum_by(point, PtP[view], N))  # points in < 2 views: min-norm
-    c = _sum_by(point, np.einsum("tai,tam->tim", P[view], rhs), N)  # (N, 3, m)
-    sizes = np.bincount(view, minlength=K).astype(float)
-    base = M_inv @ c  # X when every view mean is zero
-    # xbar_k = mean_i in k of M_i^-1 (c_i + sum_l PtP_l xbar_l) -> (I - T) xbar = b
-    b = _sum_by(view, base[point], K) / sizes[:, None, None]  # (K, 3, m)
-    alpha = obs.visibility().astype(float)
-    shared = np.einsum("kn,ln,nij->klij", alpha, alpha, M_inv)  # sum of M_i^-1 over k and l
-    T = np.einsum("klij,ljm->kilm", shared, PtP) / sizes[:, None, None, None]
-    system = np.eye(3 * K) - T.reshape(3 * K, 3 * K)
-    means = np.linalg.lstsq(system, b.reshape(3 * K, -1), rcond=None)[0].reshape(K, 3, -1)
-    coupled = _sum_by(point, np.einsum("tij,tjm->tim", PtP[view], means[view]), N)
-    return base + M_inv @ coupled  # (N, 3, m)
+
+    def __init__(self, obs, view, point, z, P):
+        self.K, self.N, self.P = obs.n_views, obs.n_points, P
+        self.view, self.point, self.z = view, point, z
+        self.PtP = np.einsum("kai,kaj->kij", P, P)
+        self.M_inv = pinv_psd(_sum_by(point, self.PtP[view], self.N))  # < 2 views: min-norm
+        order = np.argsort(point, kind="stable")  # observations grouped by point block
+        self.order, self.bounds = order, np.searchsorted(point[order], np.arange(0, self.N + _POINT_BLOCK, _POINT_BLOCK))
+        alpha = obs.visibility().astype(float)
+        sizes = alpha.sum(axis=1)
+        b = np.zeros((self.K, 3 * 4 * self.K))  # xbar_k = mean over k's points of M_i^-1 (...)
+        shared = np.zeros((self.K, self.K, 3, 3))  # sum of M_i^-1 over the points in k and l
+        for lo, hi in self._blocks():
+            base = self.M_inv[lo:hi] @ self._c(lo, hi)
+            b += alpha[:, lo:hi] @ base.reshape(hi - lo, -1)
+            shared += np.einsum("kn,ln,nij->klij", alpha[:, lo:hi], alpha[:, lo:hi], self.M_inv[lo:hi])
+        b = b.reshape(self.K, 3, -1) / sizes[:, None, None]
+        T = np.einsum("klij,ljm->kilm", shared, self.PtP) / sizes[:, None, None, None]
+        system = np.eye(3 * self.K) - T.reshape(3 * self.K, 3 * self.K)
+        means = np.linalg.lstsq(system, b.reshape(3 * self.K, -1), rcond=None)[0].reshape(self.K, 3, -1)
+        self.pull = self.PtP @ means  # (K, 3, 4K): PtP_k xbar_k, what view k adds to each point
+        self.alpha = alpha
+
+    def _blocks(self):
+        return [(lo, min(lo + _POINT_BLOCK, self.N)) for lo in range(0, self.N, _POINT_BLOCK)]
+
+    def _c(self, lo, hi):
+        """sum_t P^kT B_t for the points lo..hi, with B_t z-linear in vec(H_k):
+        H_k z_t = (z_t^T kron I_2) vec(H_k), so the columns of view k are
+        z0 P_k[0], z0 P_k[1], z1 P_k[0], z1 P_k[1] (one observation per point)."""
+        rows = self.order[self.bounds[lo // _POINT_BLOCK]:self.bounds[lo // _POINT_BLOCK + 1]]
+        c = np.zeros((hi - lo, 3, 4 * self.K))
+        p, k, z = self.point[rows] - lo, self.view[rows], self.z[rows]
+        for col, (a, r) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+            c[p, :, 4 * k + col] = z[:, a, None] * self.P[k, r]
+        return c
+
+    def block(self, lo, hi):
+        """(Y, C) for the points lo..hi: X_i = Y_i h, and C_i = sum_t P^kT B_t."""
+        c = self._c(lo, hi)
+        coupled = np.einsum("kn,kim->nim", self.alpha[:, lo:hi], self.pull)
+        return self.M_inv[lo:hi] @ (c + coupled), c
+
+    def quadratic_form(self):
+        """Q = sum_t B_t^T B_t - sum_i C_i^T Y_i: the stress after eliminating X and s."""
+        K = self.K
+        Q = np.zeros((4 * K, 4 * K))
+        zz = gram_by_group(self.z, self.view, K)  # (K, 2, 2): sum z z^T per view
+        for k in range(K):  # B^T B is block diagonal: (z z^T) kron I_2 per view
+            Q[4 * k:4 * k + 4, 4 * k:4 * k + 4] = np.kron(zz[k], np.eye(2))
+        for lo, hi in self._blocks():
+            Y, C = self.block(lo, hi)
+            Q -= np.einsum("nim,nik->mk", C, Y)
+        return Q
+
+    def points(self, h):
+        return np.concatenate([np.einsum("nim,m->ni", self.block(lo, hi)[0], h)
+                               for lo, hi in self._blocks()])
 
 
 # A 2x2 matrix c * O with O in O(2) is a*I + b*J (a rotation, det > 0) or a*F + b*G
@@ -121,20 +169,10 @@ def factorize_fixed(obs: Observations, images: list[np.ndarray]) -> tuple[np.nda
     K = obs.n_views
     P = np.asarray(obs.projections, dtype=float)
     view, point, z = _stacked(obs, images)
-    # H_k z_t = (z_t^T kron I_2) vec(H_k): one column per entry of each H_k.
-    basis = np.zeros((len(z), 2, 4 * K))
-    cols = 4 * view
-    rows = np.arange(len(z))
-    basis[rows, 0, cols], basis[rows, 1, cols + 1] = z[:, 0], z[:, 0]
-    basis[rows, 0, cols + 2], basis[rows, 1, cols + 3] = z[:, 1], z[:, 1]
-    Y = _solve_points(obs, view, point, P, basis)  # X as a linear function of vec(H)
-    C = _sum_by(point, np.einsum("tai,tam->tim", P[view], basis), obs.n_points)
-    BtB = np.einsum("tam,tan->mn", basis, basis)
-    Q = BtB - np.einsum("nim,nik->mk", C, Y)
+    system = _FixedLinearSystem(obs, view, point, z, P)  # X as a linear function of vec(H)
+    Q = system.quadratic_form()
     H = _orthogonal_transforms((Q + Q.T) / 2, K)
-    h = H.transpose(0, 2, 1).reshape(-1)
-    X = np.einsum("nim,m->ni", Y, h)
-    return X, H
+    return system.points(H.transpose(0, 2, 1).reshape(-1)), H
 
 
 def _fit_views(X, view, point, z, K, rows):

@@ -50,8 +50,29 @@ def sparse_pairs(Y: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, n
     j = np.concatenate([nn[:, 1:].ravel(), rng.integers(0, n, size=n * RANDOM_PAIRS)])
     a, b = np.minimum(i, j), np.maximum(i, j)
     keep = a != b
-    pairs = np.unique(a[keep].astype(np.int64) * n + b[keep])
+    pairs = np.sort(a[keep].astype(np.int64) * n + b[keep])
+    # sorted, then duplicates dropped: np.unique's hashing is 15x slower on these keys
+    pairs = pairs[np.concatenate([[True], pairs[1:] != pairs[:-1]])]
     return pairs // n, pairs % n
+
+
+def _view_inputs(observations: Observations) -> list:
+    """Per view: its dense distance matrix, or (i, j, d) over a sparse pair set;
+    made once per observations and dense limit, and shared by every Stress of
+    them (a solver and its report build several, and the pair set of a million
+    keypoints takes seconds)."""
+    cache = observations.__dict__.setdefault("_stress_inputs", {})  # frozen: no setattr
+    if DENSE_LIMIT not in cache:
+        out = []
+        rng = np.random.default_rng(0)  # the pair set is part of the objective: fixed
+        for view in observations.views:
+            if view.coordinates is not None and view.size > DENSE_LIMIT:
+                i, j = sparse_pairs(view.coordinates, rng)
+                out.append((i, j, np.linalg.norm(view.coordinates[i] - view.coordinates[j], axis=1)))
+            else:
+                out.append(np.ascontiguousarray(view.distance_matrix(), dtype=np.float64))
+        cache[DENSE_LIMIT] = out
+    return cache[DENSE_LIMIT]
 
 
 LOSSES = ("l2", "huber", "soft_l1")  # in the order of the kernels' loss codes
@@ -99,17 +120,9 @@ class Stress:
         self.n_points = observations.n_points
         self.ids = [view.ids for view in observations.views]
         # Per view: a dense distance matrix, or (i, j, d) over a sparse pair set.
-        self.D, self.pairs = [], []
-        rng = np.random.default_rng(0)  # the pair set is part of the objective: fixed
-        for view in observations.views:
-            if view.coordinates is not None and view.size > DENSE_LIMIT:
-                i, j = sparse_pairs(view.coordinates, rng)
-                d = np.linalg.norm(view.coordinates[i] - view.coordinates[j], axis=1)
-                self.D.append(None)
-                self.pairs.append((i, j, d))
-            else:
-                self.D.append(np.ascontiguousarray(view.distance_matrix(), dtype=np.float64))
-                self.pairs.append(None)
+        inputs = _view_inputs(observations)
+        self.D = [None if isinstance(x, tuple) else x for x in inputs]
+        self.pairs = [x if isinstance(x, tuple) else None for x in inputs]
         self.n_pairs = sum(len(p[0]) if p else len(i) * (len(i) - 1) // 2
                            for i, p in zip(self.ids, self.pairs))
         self.alpha = [None] * len(self.ids)  # per view: a weight per visible point, or None
