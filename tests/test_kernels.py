@@ -97,3 +97,33 @@ def test_bundle_row_order_is_the_stable_argsort(rng):
     point = rng.integers(0, 40, size=700)
     rows = (3 * point[:, None] + np.arange(3)).ravel()
     assert np.array_equal(_row_order(point, 50), np.argsort(rows, kind="stable"))
+
+
+def test_the_fixed_elimination_is_the_same_in_blocks(monkeypatch):
+    """factorize's fixed setting forms X = Y(h) block by block of points (no
+    N x 3 x 4K array at a million points); the block size changes no digit
+    that matters."""
+    from mpe3d import solvers
+    from mpe3d.harness.metrics import roa
+    from mpe3d.solvers import factorize
+
+    from .helpers import scene_and_observations
+
+    _, scene, obs = scene_and_observations(points=400, views=5, projections="fixed")
+    whole = solvers.solve("factorize", obs, random_state=0).points
+    monkeypatch.setattr(factorize, "_POINT_BLOCK", 64)  # seven blocks, the last one short
+    blocks = solvers.solve("factorize", obs, random_state=0).points
+    assert np.allclose(blocks, whole, atol=1e-12)
+    assert roa(blocks, scene.points) < 1e-12
+
+
+def test_stresses_of_the_same_observations_share_their_inputs():
+    """A solve and its report build several Stress objects of one set of views:
+    the distance matrices and sparse pair sets are made once."""
+    from mpe3d.solvers.stress import Stress
+
+    from .helpers import scene_and_observations
+
+    _, _, obs = scene_and_observations(points=60, observe="coordinates")
+    first, second = Stress(obs), Stress(obs, "huber", 0.1)
+    assert all(a is b for a, b in zip(first.D, second.D))
