@@ -557,7 +557,7 @@ class _Structure:
         self.y_indices = self.cols[self.y_order // 3].ravel()
         # a view's observations share their camera columns: its block of the
         # camera system is one c x c product, placed at these columns
-        self.view = tracks.view
+        self.view_rows = [np.flatnonzero(tracks.view == k) for k in range(K)]  # once, not per step
         self.view_cols = [np.concatenate([pv * k + np.arange(pv), K * pv + np.arange(ns)])
                           for k in range(K)]
 
@@ -565,8 +565,7 @@ class _Structure:
         """V = sum_t d_c^T w d_c, accumulated view by view (no T x c x c array)."""
         V = np.zeros((self.size, self.size))
         c = d_c.shape[2]
-        for k, cols in enumerate(self.view_cols):
-            rows = np.flatnonzero(self.view == k)
+        for rows, cols in zip(self.view_rows, self.view_cols):
             if len(rows):
                 J = d_c[rows].reshape(-1, c)
                 V[np.ix_(cols, cols)] += (np.repeat(weight[rows], 2)[:, None] * J).T @ J

@@ -67,8 +67,9 @@ class _FixedLinearSystem:
         self.view, self.point, self.z = view, point, z
         self.PtP = np.einsum("kai,kaj->kij", P, P)
         self.M_inv = pinv_psd(_sum_by(point, self.PtP[view], self.N))  # < 2 views: min-norm
-        order = np.argsort(point, kind="stable")  # observations grouped by point block
-        self.order, self.bounds = order, np.searchsorted(point[order], np.arange(0, self.N + _POINT_BLOCK, _POINT_BLOCK))
+        self.order = np.argsort(point, kind="stable")  # observations grouped by point block
+        self.bounds = np.searchsorted(point[self.order],
+                                      np.arange(0, self.N + _POINT_BLOCK, _POINT_BLOCK))
         alpha = obs.visibility().astype(float)
         sizes = alpha.sum(axis=1)
         b = np.zeros((self.K, 3 * 4 * self.K))  # xbar_k = mean over k's points of M_i^-1 (...)
