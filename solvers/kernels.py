@@ -1,19 +1,25 @@
 """Compiled passes: the 3DMPE stress (paper Eq. 1) one view at a time, SMACOF's
 Guttman transform, and placing one point against anchors.
 
-For each pair i < j of a view the stress kernel forms the image distance
+For each pair i != j of a view the stress kernel forms the image distance
 e_ij = ||y_i - y_j||, the residual r_ij = D_ij - e_ij, its weight
 w_ij = a_i a_j (the visibility of Eq. 1 taken into [0, 1]) and minibatch bit,
-the loss rho(r) and phi(r) = rho'(r) / 2, and adds both rows' gradient terms
+the loss rho(r) and phi(r) = rho'(r) / 2, and sums row i's gradient
 
-    dS/dy_i += -2 w phi(r) (y_i - y_j) / e,   dS/dy_j -= the same,
+    dS/dy_i = -2 sum_{j != i} w phi(r) (y_i - y_j) / e,
 
-so that no n x n temporary is ever made: the input distances are read once.
-(The kernels sum the terms without the factor 2 and ``view_stress`` doubles
-the sums, which is exact.) The loops are serial and in a fixed order, so a
-result is the same bits in every process, thread count and backend. Numba
-caches the machine code on disk (``cache=True``): a process loads it instead
-of compiling again, and :func:`warm` does so before any solver's clock starts.
+so that no n x n temporary is ever made. Each row is summed whole, both
+triangles of the symmetric D (the stress halves the sum over ordered pairs):
+then every row's terms are a reduction over contiguous memory, which the
+compiler turns into 8-wide vector sqrt and division, where adding each pair's
+term into row j as well (half the pairs, a scatter) kept the loop scalar and
+4x slower (benchmarks/stress_kernel.py). The value alone sums the pairs
+i < j once. The loops are serial and in a fixed order; ``reassoc`` lets the
+compiler split a row's sum into vector lanes, an order fixed when the kernel
+is compiled, so a result is the same bits in every process, thread count and
+backend on one machine. Numba caches the machine code on disk
+(``cache=True``): a process loads it instead of compiling again, and
+:func:`warm` does so before any solver's clock starts.
 
 Optional inputs are passed as empty arrays rather than ``None``, so that each
 kernel has one signature and one compilation.
@@ -28,6 +34,9 @@ from numba import njit
 L2, HUBER, SOFT_L1 = 0, 1, 2
 # Floor on e in 1/e: keeps it finite for coincident images, where r e-terms cancel.
 _E_FLOOR = 1e-12
+# Reductions may be split into vector lanes (an order fixed at compile time) and
+# a * b + c fused; no flag that changes a single operation's rounding or NaN/inf.
+_LANES = {"reassoc", "nsz", "contract"}
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -46,70 +55,97 @@ def _rho_phi(r, loss, scale):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _dense_row(D, y0, y1, mask, alpha, i, loss, scale, g0, g1, has_mask, has_alpha, want):
-    """Row i's pairs (i, j > i): their stress, and row i's gradient terms; adds
-    row j's terms into (g0, g1). Inlined with constant ``loss`` and flags, so
-    that the compiler drops the branches they decide from the inner loop."""
+def _row(Di, y0, y1, Mi, alpha, i, lo, loss, scale, has_mask, has_alpha, want):
+    """Row i's pairs (i, j), j >= lo: their stress, and the sums of
+    w phi / (den e) times (y_i - y_j), row i's gradient halved and negated.
+    j = i adds exact zeros (D_ii = 0). Inlined with constant ``loss`` and
+    flags, so that the compiler drops the branches they decide and vectorises
+    what is left; the caller's fastmath flags apply."""
     xi, yi = y0[i], y1[i]
     ai = alpha[i] if has_alpha else 1.0
     row = 0.0
-    fi0 = 0.0
-    fi1 = 0.0
-    for j in range(i + 1, y0.shape[0]):
+    f0 = 0.0
+    f1 = 0.0
+    for j in range(lo, y0.shape[0]):
         dx = xi - y0[j]
         dy = yi - y1[j]
         e = np.sqrt(dx * dx + dy * dy)
-        rho, phi, den = _rho_phi(D[i, j] - e, loss, scale)
+        r = Di[j] - e
         w = ai * alpha[j] if has_alpha else 1.0
-        if has_mask and not mask[i, j]:
-            w = 0.0
-        row += w * rho
+        if has_mask:
+            w = w if Mi[j] else 0.0
+        if loss == SOFT_L1:  # in this form, not _rho_phi's, the compiler vectorises it
+            root = np.sqrt(1.0 + r * r * (1.0 / (scale * scale)))
+            row += w * (root - 1.0)
+            b = w * r / max(root * e, _E_FLOOR)
+        else:
+            rho, phi, _ = _rho_phi(r, loss, scale)
+            row += w * rho
+            b = w * phi / max(e, _E_FLOOR)
         if want:
-            b = w * phi / (den * max(e, _E_FLOOR))  # half the force: view_stress doubles the sums
-            fi0 += b * dx
-            fi1 += b * dy
-            g0[j] += b * dx
-            g1[j] += b * dy
-    return row, fi0, fi1
+            f0 += b * dx
+            f1 += b * dy
+    if loss == SOFT_L1:
+        row *= 2.0 * scale * scale
+    return row, f0, f1
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _dense_rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, has_mask, has_alpha, want):
+def _rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, has_mask, has_alpha, want):
+    """The view's stress: with ``want``, each row whole (every pair twice, and
+    -1/2 dS/dy_i written to (g0[i], g1[i])); without, the pairs j > i once."""
     total = 0.0
     for i in range(y0.shape[0]):
-        if loss == L2:
-            row, fi0, fi1 = _dense_row(D, y0, y1, mask, alpha, i, L2, scale, g0, g1,
-                                       has_mask, has_alpha, want)
-        elif loss == HUBER:
-            row, fi0, fi1 = _dense_row(D, y0, y1, mask, alpha, i, HUBER, scale, g0, g1,
-                                       has_mask, has_alpha, want)
-        else:
-            row, fi0, fi1 = _dense_row(D, y0, y1, mask, alpha, i, SOFT_L1, scale, g0, g1,
-                                       has_mask, has_alpha, want)
+        Mi = mask[i] if has_mask else mask.ravel()  # never read without a mask
+        row, f0, f1 = _row(D[i], y0, y1, Mi, alpha, i, 0 if want else i + 1, loss, scale,
+                           has_mask, has_alpha, want)
         total += row
         if want:
-            g0[i] -= fi0
-            g1[i] -= fi1
-    return total
+            g0[i] = -f0
+            g1[i] = -f1
+    return 0.5 * total if want else total
 
 
-@njit(cache=True, nogil=True)
-def dense_view(D, y0, y1, mask, alpha, loss, scale, g0, g1):
-    """Stress of one view over its pairs i < j (D read above the diagonal);
-    adds dS/dy into (g0, g1) unless they are empty. ``mask`` (n x n booleans,
-    read above the diagonal) and ``alpha`` (n weights) are skipped when empty.
-    The plain stress and its gradient, what every iteration of SGD and
-    refine asks for, get loops with nothing else in them."""
-    has_mask, has_alpha, want = mask.shape[0] > 0, alpha.shape[0] > 0, g0.shape[0] > 0
-    if has_mask:
-        return _dense_rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, True, has_alpha, want)
+@njit(cache=True, nogil=True, inline="always")
+def _dense_loss(D, y0, y1, mask, alpha, loss, scale, g0, g1):
+    """One loss's specialisations, the flags as constants."""
+    has_alpha, want = alpha.shape[0] > 0, g0.shape[0] > 0
+    if mask.shape[0] > 0:  # SGD's minibatches (c < 1)
+        return _rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, True, has_alpha, want)
     if has_alpha:  # refine's rounds without the rejected observations
         if want:
-            return _dense_rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, False, True, True)
-        return _dense_rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, False, True, False)
-    if want:
-        return _dense_rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, False, False, True)
-    return _dense_rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, False, False, False)
+            return _rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, False, True, True)
+        return _rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, False, True, False)
+    if want:  # every iteration of SGD and refine
+        return _rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, False, False, True)
+    return _rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, False, False, False)
+
+
+# One compiled function per loss: numba's compile time grows faster than the
+# code it compiles, so three small functions compile far sooner than one.
+@njit(cache=True, nogil=True, fastmath=_LANES)
+def _dense_l2(D, y0, y1, mask, alpha, scale, g0, g1):
+    return _dense_loss(D, y0, y1, mask, alpha, L2, scale, g0, g1)
+
+
+@njit(cache=True, nogil=True, fastmath=_LANES)
+def _dense_huber(D, y0, y1, mask, alpha, scale, g0, g1):
+    return _dense_loss(D, y0, y1, mask, alpha, HUBER, scale, g0, g1)
+
+
+@njit(cache=True, nogil=True, fastmath=_LANES)
+def _dense_soft_l1(D, y0, y1, mask, alpha, scale, g0, g1):
+    return _dense_loss(D, y0, y1, mask, alpha, SOFT_L1, scale, g0, g1)
+
+
+_DENSE = (_dense_l2, _dense_huber, _dense_soft_l1)  # by loss code
+
+
+def dense_view(D, y0, y1, mask, alpha, loss, scale, g0, g1):
+    """Stress of one view over its pairs i < j (D symmetric, zero diagonal);
+    writes -1/2 dS/dy into (g0, g1) unless they are empty. ``mask`` (n x n
+    booleans, symmetric) and ``alpha`` (n weights) are skipped when empty."""
+    return _DENSE[loss](D, y0, y1, mask, alpha, scale, g0, g1)
 
 
 @njit(cache=True, nogil=True)
@@ -138,43 +174,46 @@ def pair_view(i, j, d, y0, y1, mask, alpha, loss, scale, g0, g1):
     return total
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=_LANES)
 def guttman_pass(D, X, out):
     """One pass of metric SMACOF (de Leeuw; Borg & Groenen 1997, ch. 8) at a 3D
     configuration X: its raw stress sum_{i<j} (d_ij - D_ij)^2 and
     sum_{i<j} d_ij^2, and the Guttman transform X+ = B(X) X / n written into
     ``out``, with (B(X) X)_i = sum_j D_ij / d_ij (x_i - x_j) and d_ij = 0 read
-    as 1e-5 (scikit-learn's convention)."""
+    as 1e-5 (scikit-learn's convention). Each row is summed whole (D
+    symmetric, zero diagonal: j = i adds zeros), so that it vectorises as the
+    stress kernel does; the sums over pairs count each pair twice."""
     n = X.shape[0]
-    out[:] = 0.0
+    x0, x1, x2 = X[:, 0].copy(), X[:, 1].copy(), X[:, 2].copy()
     stress = 0.0
     squares = 0.0
     for i in range(n):
-        xi, yi, zi = X[i, 0], X[i, 1], X[i, 2]
+        Di = D[i]
+        xi, yi, zi = x0[i], x1[i], x2[i]
+        s = 0.0
+        sq = 0.0
         o0 = 0.0
         o1 = 0.0
         o2 = 0.0
-        for j in range(i + 1, n):
-            dx = xi - X[j, 0]
-            dy = yi - X[j, 1]
-            dz = zi - X[j, 2]
+        for j in range(n):
+            dx = xi - x0[j]
+            dy = yi - x1[j]
+            dz = zi - x2[j]
             q = dx * dx + dy * dy + dz * dz
             d = np.sqrt(q)
-            r = d - D[i, j]
-            stress += r * r
-            squares += q
-            ratio = D[i, j] / (d if d != 0.0 else 1e-5)
+            r = d - Di[j]
+            s += r * r
+            sq += q
+            ratio = Di[j] / (d if d != 0.0 else 1e-5)
             o0 += ratio * dx
             o1 += ratio * dy
             o2 += ratio * dz
-            out[j, 0] -= ratio * dx
-            out[j, 1] -= ratio * dy
-            out[j, 2] -= ratio * dz
-        out[i, 0] += o0
-        out[i, 1] += o1
-        out[i, 2] += o2
-    out /= n
-    return stress, squares
+        stress += s
+        squares += sq
+        out[i, 0] = o0 / n
+        out[i, 1] = o1 / n
+        out[i, 2] = o2 / n
+    return 0.5 * stress, 0.5 * squares
 
 
 def smacof(D: np.ndarray, init: np.ndarray, max_iter: int = 300, eps: float = 1e-6):
@@ -183,6 +222,9 @@ def smacof(D: np.ndarray, init: np.ndarray, max_iter: int = 300, eps: float = 1e
     stop when the stress falls by less than ``eps`` times sum_{i<j} d_ij^2),
     one fused pass per iteration. Returns (X, stress, iterations)."""
     D = np.ascontiguousarray(D, dtype=np.float64)
+    if np.any(np.diagonal(D)):  # the stress has no diagonal; the kernel reads one
+        D = D.copy()
+        np.fill_diagonal(D, 0.0)
     X = np.array(init, dtype=np.float64, order="C")
     if X.ndim != 2 or X.shape[1] != 3:
         raise ValueError(f"smacof embeds in 3D; init is {X.shape}")
@@ -250,8 +292,9 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
     """(stress, dS/dY or None) of one view: dense (``D``) or over ``pairs``."""
     y0, y1 = np.ascontiguousarray(Y[:, 0]), np.ascontiguousarray(Y[:, 1])
     n = len(Y)
-    g0 = np.zeros(n) if want_grad else _NONE_F
-    g1 = np.zeros(n) if want_grad else _NONE_F
+    make = np.empty if pairs is None else np.zeros  # the dense kernel writes every row
+    g0 = make(n) if want_grad else _NONE_F
+    g1 = make(n) if want_grad else _NONE_F
     alpha = _NONE_F if alpha is None else alpha
     if pairs is None:
         total = dense_view(D, y0, y1, _NONE_MASK2 if mask is None else mask, alpha,
@@ -276,8 +319,9 @@ def warm() -> None:
     if _warm:
         return
     Y = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
-    # One signature per kernel (the loss is an argument), so one call each compiles it all.
-    view_stress(None, np.ones((3, 3)), Y, None, None, L2, 1.0, True)
+    # One signature per kernel, so one call each compiles it all (the dense one per loss).
+    for loss in (L2, HUBER, SOFT_L1):
+        view_stress(None, np.ones((3, 3)), Y, None, None, loss, 1.0, True)
     view_stress((np.array([0, 1]), np.array([1, 2]), np.ones(2)), None, Y, None, None, L2, 1.0, True)
     guttman_pass(np.ones((3, 3)), np.eye(3), np.empty((3, 3)))
     P, d = np.zeros((3, 2, 3)), np.ones(3)
