@@ -243,25 +243,71 @@ def smacof(D: np.ndarray, init: np.ndarray, max_iter: int = 300, eps: float = 1e
     return X, stress, max_iter
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _residual_row(x, P, Y, d, root, t):
+    """Anchor t's weighted residual -root (d - e) and its gradient in x."""
+    u0 = P[t, 0, 0] * x[0] + P[t, 0, 1] * x[1] + P[t, 0, 2] * x[2] - Y[t, 0]
+    u1 = P[t, 1, 0] * x[0] + P[t, 1, 1] * x[1] + P[t, 1, 2] * x[2] - Y[t, 1]
+    e = max(np.sqrt(u0 * u0 + u1 * u1), _E_FLOOR)
+    s = -root[t] / e
+    return (s * (u0 * P[t, 0, 0] + u1 * P[t, 1, 0]), s * (u0 * P[t, 0, 1] + u1 * P[t, 1, 1]),
+            s * (u0 * P[t, 0, 2] + u1 * P[t, 1, 2]), -root[t] * (d[t] - e))
+
+
+@njit(cache=True, nogil=True)
+def _gauss_newton_step(x, P, Y, d, root):
+    """The least-squares step A s = b of one Gauss-Newton iteration, from the
+    3 x 3 normal equations (a pass over the anchors, no m x 3 matrix); by
+    LAPACK's gelsd on A itself where they are ill-conditioned (cond > ~1e8),
+    as when the anchors' views leave the point's depth open."""
+    M = np.zeros((3, 3))
+    v = np.zeros(3)
+    for t in range(d.shape[0]):
+        a0, a1, a2, b = _residual_row(x, P, Y, d, root, t)
+        M[0, 0] += a0 * a0
+        M[0, 1] += a0 * a1
+        M[0, 2] += a0 * a2
+        M[1, 1] += a1 * a1
+        M[1, 2] += a1 * a2
+        M[2, 2] += a2 * a2
+        v[0] += a0 * b
+        v[1] += a1 * b
+        v[2] += a2 * b
+    M[1, 0], M[2, 0], M[2, 1] = M[0, 1], M[0, 2], M[1, 2]
+    c0 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]  # cofactors: det and the inverse
+    c1 = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
+    c2 = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
+    det = M[0, 0] * c0 + M[0, 1] * c1 + M[0, 2] * c2
+    trace = M[0, 0] + M[1, 1] + M[2, 2]
+    if det > 1e-8 * trace * trace * trace and trace > 0.0:  # det / trace^3 bounds the condition
+        c3 = M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]
+        c4 = M[0, 0] * M[2, 2] - M[0, 2] * M[2, 0]
+        c5 = M[0, 1] * M[2, 0] - M[0, 0] * M[2, 1]
+        c6 = M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]
+        c7 = M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]
+        c8 = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
+        step = np.empty(3)
+        step[0] = (c0 * v[0] + c3 * v[1] + c6 * v[2]) / det
+        step[1] = (c1 * v[0] + c4 * v[1] + c7 * v[2]) / det
+        step[2] = (c2 * v[0] + c5 * v[1] + c8 * v[2]) / det
+        return step
+    A = np.empty((d.shape[0], 3))
+    b = np.empty(d.shape[0])
+    for t in range(d.shape[0]):
+        A[t, 0], A[t, 1], A[t, 2], b[t] = _residual_row(x, P, Y, d, root, t)
+    # numba's default rcond (machine epsilon) keeps rounding-level singular values
+    # as directions to move along, and steps 1e12 along the open depth
+    return np.linalg.lstsq(A, b, 1e-10)[0]
+
+
 @njit(cache=True, nogil=True)
 def multilaterate(x, P, Y, d, root, steps):
     """The point whose projected distances to anchors fit ``d``: Gauss-Newton
-    from x on sum_t root_t^2 (d_t - ||P_t x - Y_t||)^2, each step a least-squares
-    solve (LAPACK's gelsd, as numpy's lstsq), ending when a step is below 1e-9
-    of the point's size. P: (m, 2, 3), Y: (m, 2), d and root: (m,)."""
+    from x on sum_t root_t^2 (d_t - ||P_t x - Y_t||)^2, ending when a step is
+    below 1e-9 of the point's size. P: (m, 2, 3), Y: (m, 2), d and root: (m,)."""
     x = x.copy()
-    m = d.shape[0]
-    A = np.empty((m, 3))
-    b = np.empty(m)
     for _ in range(steps):
-        for t in range(m):
-            u0 = P[t, 0, 0] * x[0] + P[t, 0, 1] * x[1] + P[t, 0, 2] * x[2] - Y[t, 0]
-            u1 = P[t, 1, 0] * x[0] + P[t, 1, 1] * x[1] + P[t, 1, 2] * x[2] - Y[t, 1]
-            e = max(np.sqrt(u0 * u0 + u1 * u1), _E_FLOOR)
-            for c in range(3):  # d r / d x, weighted
-                A[t, c] = -root[t] * (u0 * P[t, 0, c] + u1 * P[t, 1, c]) / e
-            b[t] = -root[t] * (d[t] - e)
-        step = np.linalg.lstsq(A, b)[0]
+        step = _gauss_newton_step(x, P, Y, d, root)
         x += step
         if np.sqrt(np.sum(step * step)) <= 1e-9 * (1.0 + np.sqrt(np.sum(x * x))):
             break

@@ -68,6 +68,22 @@ def test_multilateration_matches_numpy_gauss_newton(rng):
     assert np.allclose(kernels.row_misfits(got, P, Y, d, starts), want, rtol=1e-14)
 
 
+def test_multilateration_in_one_view_falls_back_to_least_squares(rng):
+    """Anchors in one view leave the point's depth open: the normal equations
+    are singular, and the step must be gelsd's minimum-norm one, as before."""
+    from mpe3d.solvers.sgd import random_projections
+
+    P = np.repeat(random_projections(1, rng), 50, axis=0)
+    anchors = rng.normal(size=(50, 3))
+    Y = np.einsum("nij,nj->ni", P, anchors)
+    point = rng.normal(size=3)
+    d = np.linalg.norm(np.einsum("nij,j->ni", P, point) - Y, axis=1)
+    start = point + 0.2 * rng.normal(size=3)
+    root = np.ones(50)
+    got = kernels.multilaterate(start, P, Y, d, root, 10)
+    assert np.allclose(got, _gauss_newton(start, P, Y, d, root, 10), atol=1e-10)
+
+
 def test_pinv_psd_is_pinv_on_good_and_degenerate_systems(rng):
     A = rng.normal(size=(500, 4, 3))
     M = np.einsum("nai,naj->nij", A, A)
