@@ -19,19 +19,51 @@ def render_comparison(truth: np.ndarray, reconstruction: np.ndarray, path: Path 
     """Ground truth against the aligned reconstruction in three labelled
     orthogonal views: the truth as wide pale discs, ours as small dark dots
     on top, so that where they coincide both stay visible."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from PIL import Image
 
+    figure = _comparison_figure()
+    canvas = figure["figure"].canvas
     both = np.vstack([truth, reconstruction])
     lo, hi = both.min(axis=0), both.max(axis=0)
     centre, half = (lo + hi) / 2, max((hi - lo).max() / 2, 1e-12) * 1.05
-    fig, axes = plt.subplots(1, 3, figsize=(9.6, 3.6))
-    for ax, (name, a, b) in zip(axes, VIEWS):
-        ax.scatter(truth[:, a], truth[:, b], **TRUTH_STYLE)
-        ax.scatter(reconstruction[:, a], reconstruction[:, b], **OURS_STYLE)
+    for ax, (_, a, b), (pale, dark) in zip(figure["axes"], VIEWS, figure["dots"]):
+        pale.set_offsets(truth[:, [a, b]])
+        dark.set_offsets(reconstruction[:, [a, b]])
         ax.set_xlim(centre[a] - half, centre[a] + half)
         ax.set_ylim(centre[b] - half, centre[b] + half)
+    figure["title"].set_text(title)
+    canvas.restore_region(_background(figure, dpi))
+    for ax, dots in zip(figure["axes"], figure["dots"]):
+        for artist in dots:
+            ax.draw_artist(artist)
+    figure["figure"].draw_artist(figure["title"])
+    Image.fromarray(np.asarray(canvas.buffer_rgba())).save(path, format="png")
+    return path
+
+
+_FIGURE: dict = {}
+
+
+def _comparison_figure() -> dict:
+    """The comparison's figure, made once per process: a sweep draws one
+    picture per run, and its frames, labels and legend, which no run changes
+    (there are no ticks), cost most of a picture. They are drawn once per dpi
+    and kept as a background; each run draws only its points and title."""
+    if _FIGURE:
+        return _FIGURE
+    import matplotlib
+    matplotlib.use("Agg")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9.6, 3.6))
+    FigureCanvasAgg(fig)  # its own canvas: pyplot never sees, draws on or closes it
+    axes = fig.subplots(1, 3)
+    none = np.empty((0, 2))
+    dots = []
+    for ax, (name, a, b) in zip(axes, VIEWS):
+        dots.append((ax.scatter(none[:, 0], none[:, 1], **TRUTH_STYLE),
+                     ax.scatter(none[:, 0], none[:, 1], **OURS_STYLE)))
         ax.set_aspect("equal")
         ax.set_title(name, fontsize=9)
         ax.set_xlabel("xyz"[a], fontsize=8, labelpad=1)
@@ -41,13 +73,24 @@ def render_comparison(truth: np.ndarray, reconstruction: np.ndarray, path: Path 
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=2, fontsize=8, markerscale=2.5,
                frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=10)
-    # Fixed margins: tight_layout would double the cost of a picture per run.
-    fig.subplots_adjust(left=0.03, right=0.99, bottom=0.14, top=0.84 if title else 0.92, wspace=0.12)
-    fig.savefig(path, dpi=dpi, format="png")
-    plt.close(fig)
-    return path
+    fig.subplots_adjust(left=0.03, right=0.99, bottom=0.14, top=0.84, wspace=0.12)
+    _FIGURE.update(figure=fig, axes=axes, dots=dots, title=fig.suptitle("", fontsize=10),
+                   backgrounds={})
+    return _FIGURE
+
+
+def _background(figure: dict, dpi: int):
+    """The figure without points or title at ``dpi``, drawn once."""
+    fig = figure["figure"]
+    fig.set_dpi(dpi)
+    if dpi not in figure["backgrounds"]:
+        for artist in (*np.ravel(figure["dots"]), figure["title"]):
+            artist.set_visible(False)
+        fig.canvas.draw()
+        figure["backgrounds"][dpi] = fig.canvas.copy_from_bbox(fig.bbox)
+        for artist in (*np.ravel(figure["dots"]), figure["title"]):
+            artist.set_visible(True)
+    return figure["backgrounds"][dpi]
 
 
 def comparison_png(truth: np.ndarray, reconstruction: np.ndarray, title: str = "") -> bytes:
