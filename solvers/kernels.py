@@ -329,6 +329,63 @@ def row_misfits(x, P, Y, d, starts):
     return out
 
 
+@njit(cache=True, nogil=True)
+def row_median_residuals(D, y0, y1, cols):
+    """Per row i of a view, the median over j in ``cols`` of |D_ij - e_ij|:
+    each observation's misfit, one row at a time (no n x n temporary).
+    e_ij as scipy's cdist forms it, so the misfits and the rejections they
+    decide are those of the NumPy formulation."""
+    out = np.empty(y0.shape[0])
+    residuals = np.empty(cols.shape[0])
+    c0, c1 = y0[cols], y1[cols]
+    for i in range(y0.shape[0]):
+        Di = D[i]
+        for t in range(cols.shape[0]):
+            dx = y0[i] - c0[t]
+            dy = y1[i] - c1[t]
+            residuals[t] = abs(Di[cols[t]] - np.sqrt(dx * dx + dy * dy))
+        out[i] = _median_in_place(residuals)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _median_in_place(a):
+    """np.median(a), reordering a: Hoare's selection of the middle element
+    (median-of-three pivots), then for an even count the mean of it and the
+    smallest element above it, as numpy averages the two middle ones."""
+    m = a.shape[0]
+    k = (m - 1) // 2
+    lo, hi = 0, m - 1
+    while lo < hi:
+        mid = (lo + hi) // 2  # order a[lo], a[mid], a[hi]: the pivot is their median
+        if a[mid] < a[lo]:
+            a[mid], a[lo] = a[lo], a[mid]
+        if a[hi] < a[lo]:
+            a[hi], a[lo] = a[lo], a[hi]
+        if a[hi] < a[mid]:
+            a[hi], a[mid] = a[mid], a[hi]
+        pivot = a[mid]
+        i, j = lo, hi
+        while i <= j:
+            while a[i] < pivot:
+                i += 1
+            while pivot < a[j]:
+                j -= 1
+            if i <= j:
+                a[i], a[j] = a[j], a[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    if m % 2:
+        return a[k]
+    return (a[k] + np.min(a[k + 1:])) / 2
+
+
 _NONE_F = np.empty(0)
 _NONE_MASK1 = np.empty(0, dtype=np.bool_)
 _NONE_MASK2 = np.empty((0, 0), dtype=np.bool_)
@@ -374,4 +431,5 @@ def warm() -> None:
     P[:, 0, 0] = P[:, 1, 1] = 1.0
     multilaterate(np.zeros(3), P, Y, d, d, 1)
     row_misfits(np.zeros(3), P, Y, d, np.array([0, 3]))
+    row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
     _warm = True

@@ -167,6 +167,10 @@ class Stress:
                 continue
             Y = X[ids] @ P[k].T
             cols = np.flatnonzero(among[k])
+            if self.kernel == "compiled":
+                out.append(kernels.row_median_residuals(self.D[k], np.ascontiguousarray(Y[:, 0]),
+                                                        np.ascontiguousarray(Y[:, 1]), cols))
+                continue
             step = max(1, _BLOCK_ENTRIES // max(len(cols), 1))
             out.append(np.concatenate([
                 np.median(np.abs(self.D[k][a:a + step, cols] - cdist(Y[a:a + step], Y[cols])), axis=1)

@@ -143,3 +143,32 @@ def test_stresses_of_the_same_observations_share_their_inputs():
     _, _, obs = scene_and_observations(points=60, observe="coordinates")
     first, second = Stress(obs), Stress(obs, "huber", 0.1)
     assert all(a is b for a, b in zip(first.D, second.D))
+
+
+def test_compiled_median_is_numpys(rng):
+    """Odd and even counts, ties and all-equal rows: the rejection line
+    compares misfits with it, so it must be numpy's to the bit."""
+    from mpe3d.solvers.kernels import _median_in_place
+
+    for m in [*range(1, 30), 200, 201]:
+        for values in (rng.normal(size=m), rng.integers(0, 3, size=m).astype(float), np.ones(m)):
+            assert _median_in_place(values.copy()) == np.median(values)
+
+
+def test_row_residuals_compiled_match_numpy(rng):
+    from mpe3d.harness.observe import build_scene, observe, seed_streams
+    from mpe3d.solvers.sgd import random_projections
+    from mpe3d.solvers.stress import Stress
+    from mpe3d import make_config
+
+    config = make_config({"shape": "chair", "points": 200, "views": 4, "visibility.mode": "exact",
+                          "visibility.k": 3, "projections": "variable"})
+    streams = seed_streams(0)
+    scene = build_scene(config, streams)
+    obs, _ = observe(scene, config, streams)
+    X = scene.points + 0.01 * rng.normal(size=scene.points.shape)
+    P = random_projections(4, rng)
+    among = [rng.random(v.size) < 0.8 for v in obs.views]
+    got = Stress(obs).row_residuals(X, P, among)
+    want = Stress(obs, kernel="numpy").row_residuals(X, P, among)
+    assert all(np.array_equal(a, b) for a, b in zip(got, want))
