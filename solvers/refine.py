@@ -14,10 +14,9 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
-from scipy.optimize import minimize
 
 
-from . import kernels
+from . import kernels, lbfgs
 from .base import Choice, Interval, Observations, Reconstruction, register
 from .factorize import solve_factorize
 from .stress import LOSSES, Stress
@@ -318,39 +317,20 @@ def _line(stress, X, P, rejected, total, misfit=None) -> float:
 
 
 def _descend(observations: Observations, stress: Stress, X0: np.ndarray, P0: np.ndarray,
-             f0: float | None, max_iter: int, tol: float, total: float,
-             free: np.ndarray | None = None):
-    """L-BFGS from (X0, P0): the points, projections, objective, history, iterations, reason.
-    With ``free`` (a mask over the points) only those points move."""
+             f0: float | None, max_iter: int, tol: float, total: float):
+    """L-BFGS from (X0, P0): the points, projections, objective, history, iterations, reason."""
     R0 = _rotations(P0)
     f, unpack = _objective(stress, X0.shape, R0, P0 if observations.fixed else None)
     theta0 = X0.ravel() if observations.fixed else np.concatenate([X0.ravel(), np.zeros(3 * len(P0))])
-    f0 = f(theta0)[0] if f0 is None else f0
+    start = f(theta0) if f0 is None else None
+    f0 = start[0] if f0 is None else f0
     history = [f0]
     if f0 <= _EXACT * total:  # residuals at rounding level
         theta, value, iterations = theta0, f0, 0
         termination = "start already exact (relative stress below 1e-18)"
     else:
-        bounds = None
-        if free is not None:  # L-BFGS-B keeps a variable whose bounds meet where it is
-            held = np.ones(theta0.size, dtype=bool)
-            held[:3 * len(X0)] = ~np.repeat(free, 3)
-            bounds = [(v, v) if h else (None, None) for v, h in zip(theta0, held)]
-        theta, value, iterations, termination = _minimise(f, theta0, history, max_iter, tol, bounds)
+        result = lbfgs.minimize(f, theta0, max_iter=max_iter, ftol=tol, start=start,
+                                callback=history.append)
+        theta, value, iterations, termination = result.x, result.fun, result.nit, result.message
     X, P, _ = unpack(theta)
     return X, np.array(P), value, history, iterations, termination
-def _minimise(f, theta0: np.ndarray, history: list, max_iter: int, tol: float, bounds=None):
-    """L-BFGS-B from theta0; the start back if it somehow ends higher."""
-    def record(intermediate_result):  # scipy passes the OptimizeResult by this name
-        history.append(float(intermediate_result.fun))
-
-    result = minimize(f, theta0, jac=True, method="L-BFGS-B", callback=record, bounds=bounds,
-                      options={"maxiter": max_iter, "ftol": tol, "gtol": 0.0, "maxcor": 20})
-    termination = str(result.message)
-    if result.status == 2:  # L-BFGS-B's "ABNORMAL": its line search found no decrease
-        termination = "no further decrease at numerical precision"
-    if result.fun > history[0]:  # the line search should prevent this; never trust it
-        del history[1:]  # the start is kept: no iteration changed it
-        return theta0, history[0], 0, "kept the factorize start (no decrease)"
-    # scipy reports every accepted step to ``record``; one value per iteration.
-    return result.x, float(result.fun), len(history) - 1, termination
