@@ -254,42 +254,37 @@ def _residual_row(x, P, Y, d, root, t):
             s * (u0 * P[t, 0, 2] + u1 * P[t, 1, 2]), -root[t] * (d[t] - e))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, fastmath=_LANES)
 def _gauss_newton_step(x, P, Y, d, root):
     """The least-squares step A s = b of one Gauss-Newton iteration, from the
-    3 x 3 normal equations (a pass over the anchors, no m x 3 matrix); by
-    LAPACK's gelsd on A itself where they are ill-conditioned (cond > ~1e8),
-    as when the anchors' views leave the point's depth open."""
-    M = np.zeros((3, 3))
-    v = np.zeros(3)
+    3 x 3 normal equations (one vectorised pass over the anchors, no m x 3
+    matrix); by LAPACK's gelsd on A itself where they are ill-conditioned
+    (cond > ~1e8), as when the anchors' views leave the point's depth open."""
+    m00 = m01 = m02 = m11 = m12 = m22 = v0 = v1 = v2 = 0.0
     for t in range(d.shape[0]):
         a0, a1, a2, b = _residual_row(x, P, Y, d, root, t)
-        M[0, 0] += a0 * a0
-        M[0, 1] += a0 * a1
-        M[0, 2] += a0 * a2
-        M[1, 1] += a1 * a1
-        M[1, 2] += a1 * a2
-        M[2, 2] += a2 * a2
-        v[0] += a0 * b
-        v[1] += a1 * b
-        v[2] += a2 * b
-    M[1, 0], M[2, 0], M[2, 1] = M[0, 1], M[0, 2], M[1, 2]
-    c0 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]  # cofactors: det and the inverse
-    c1 = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
-    c2 = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
-    det = M[0, 0] * c0 + M[0, 1] * c1 + M[0, 2] * c2
-    trace = M[0, 0] + M[1, 1] + M[2, 2]
+        m00 += a0 * a0
+        m01 += a0 * a1
+        m02 += a0 * a2
+        m11 += a1 * a1
+        m12 += a1 * a2
+        m22 += a2 * a2
+        v0 += a0 * b
+        v1 += a1 * b
+        v2 += a2 * b
+    c0 = m11 * m22 - m12 * m12  # cofactors of the symmetric M: det and the inverse
+    c1 = m12 * m02 - m01 * m22
+    c2 = m01 * m12 - m11 * m02
+    c4 = m00 * m22 - m02 * m02
+    c5 = m01 * m02 - m00 * m12
+    c8 = m00 * m11 - m01 * m01
+    det = m00 * c0 + m01 * c1 + m02 * c2
+    trace = m00 + m11 + m22
     if det > 1e-8 * trace * trace * trace and trace > 0.0:  # det / trace^3 bounds the condition
-        c3 = M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]
-        c4 = M[0, 0] * M[2, 2] - M[0, 2] * M[2, 0]
-        c5 = M[0, 1] * M[2, 0] - M[0, 0] * M[2, 1]
-        c6 = M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]
-        c7 = M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]
-        c8 = M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]
         step = np.empty(3)
-        step[0] = (c0 * v[0] + c3 * v[1] + c6 * v[2]) / det
-        step[1] = (c1 * v[0] + c4 * v[1] + c7 * v[2]) / det
-        step[2] = (c2 * v[0] + c5 * v[1] + c8 * v[2]) / det
+        step[0] = (c0 * v0 + c1 * v1 + c2 * v2) / det
+        step[1] = (c1 * v0 + c4 * v1 + c5 * v2) / det
+        step[2] = (c2 * v0 + c5 * v1 + c8 * v2) / det
         return step
     A = np.empty((d.shape[0], 3))
     b = np.empty(d.shape[0])
@@ -325,7 +320,7 @@ def row_misfits(x, P, Y, d, starts):
             u0 = P[t, 0, 0] * x[0] + P[t, 0, 1] * x[1] + P[t, 0, 2] * x[2] - Y[t, 0]
             u1 = P[t, 1, 0] * x[0] + P[t, 1, 1] * x[1] + P[t, 1, 2] * x[2] - Y[t, 1]
             res[t - a] = abs(d[t] - np.sqrt(u0 * u0 + u1 * u1))
-        out[r] = np.median(res)
+        out[r] = _median_in_place(res)
     return out
 
 
