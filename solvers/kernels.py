@@ -1,22 +1,23 @@
 """Compiled passes: the 3DMPE stress (paper Eq. 1) one view at a time, SMACOF's
 Guttman transform, and placing one point against anchors.
 
-For each pair i != j of a view the stress kernel forms the image distance
+For each pair i < j of a view the stress kernel forms the image distance
 e_ij = ||y_i - y_j||, the residual r_ij = D_ij - e_ij, its weight
 w_ij = a_i a_j (the visibility of Eq. 1 taken into [0, 1]) and minibatch bit,
-the loss rho(r) and phi(r) = rho'(r) / 2, and sums row i's gradient
+the loss rho(r) and phi(r) = rho'(r) / 2, and adds both rows' gradient terms
 
-    dS/dy_i = -2 sum_{j != i} w phi(r) (y_i - y_j) / e,
+    dS/dy_i += -2 w phi(r) (y_i - y_j) / e,   dS/dy_j -= the same,
 
-so that no n x n temporary is ever made. Each row is summed whole, both
-triangles of the symmetric D (the stress halves the sum over ordered pairs):
-then every row's terms are a reduction over contiguous memory, which the
-compiler turns into 8-wide vector sqrt and division, where adding each pair's
-term into row j as well (half the pairs, a scatter) kept the loop scalar and
-4x slower (benchmarks/stress_kernel.py). The value alone sums the pairs
-i < j once. The loops are serial and in a fixed order; ``reassoc`` lets the
-compiler split a row's sum into vector lanes, an order fixed when the kernel
-is compiled, so a result is the same bits in every process, thread count and
+so that no n x n temporary is ever made: the input distances are read once.
+(The kernels sum the terms without the factor 2 and ``view_stress`` doubles
+the sums, which is exact.) Row i's pairs are passed as slices [i + 1:] of
+the view's arrays, indexed from 0: the compiler then proves every index
+non-negative and turns the loop, row j's updates included, into 8-wide
+vector square roots and divisions (AVX-512 here), about 7x the scalar loop
+(``benchmarks/stress_kernel.py`` checks the packed instructions are there).
+The loops are serial and in a fixed order; ``reassoc`` lets the compiler
+split a row's sums into vector lanes, an order fixed when the kernel is
+compiled, so a result is the same bits in every process, thread count and
 backend on one machine. Numba caches the machine code on disk
 (``cache=True``): a process loads it instead of compiling again, and
 :func:`warm` does so before any solver's clock starts.
@@ -55,25 +56,24 @@ def _rho_phi(r, loss, scale):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _row(Di, y0, y1, Mi, alpha, i, lo, loss, scale, has_mask, has_alpha, want):
-    """Row i's pairs (i, j), j >= lo: their stress, and the sums of
-    w phi / (den e) times (y_i - y_j), row i's gradient halved and negated.
-    j = i adds exact zeros (D_ii = 0). Inlined with constant ``loss`` and
-    flags, so that the compiler drops the branches they decide and vectorises
-    what is left; the caller's fastmath flags apply."""
-    xi, yi = y0[i], y1[i]
-    ai = alpha[i] if has_alpha else 1.0
+def _row(Di, y0, y1, Mi, alpha, xi, yi, ai, g0, g1, loss, scale, has_mask, has_alpha, want):
+    """Row i's pairs (i, j > i), passed as the slices [i + 1:] of the view's
+    arrays: their stress and the sums of w phi / (den e) (y_i - y_j), row i's
+    gradient halved and negated; each term is added into row j's (g0, g1).
+    Slices starting at 0 let the compiler prove every index non-negative and
+    vectorise. Inlined with constant ``loss`` and flags, so that it drops the
+    branches they decide; the caller's fastmath flags apply."""
     row = 0.0
     f0 = 0.0
     f1 = 0.0
-    for j in range(lo, y0.shape[0]):
-        dx = xi - y0[j]
-        dy = yi - y1[j]
+    for t in range(Di.shape[0]):
+        dx = xi - y0[t]
+        dy = yi - y1[t]
         e = np.sqrt(dx * dx + dy * dy)
-        r = Di[j] - e
-        w = ai * alpha[j] if has_alpha else 1.0
+        r = Di[t] - e
+        w = ai * alpha[t] if has_alpha else 1.0
         if has_mask:
-            w = w if Mi[j] else 0.0
+            w = w if Mi[t] else 0.0
         if loss == SOFT_L1:  # in this form, not _rho_phi's, the compiler vectorises it
             root = np.sqrt(1.0 + r * r * (1.0 / (scale * scale)))
             row += w * (root - 1.0)
@@ -85,6 +85,8 @@ def _row(Di, y0, y1, Mi, alpha, i, lo, loss, scale, has_mask, has_alpha, want):
         if want:
             f0 += b * dx
             f1 += b * dy
+            g0[t] += b * dx
+            g1[t] += b * dy
     if loss == SOFT_L1:
         row *= 2.0 * scale * scale
     return row, f0, f1
@@ -92,18 +94,20 @@ def _row(Di, y0, y1, Mi, alpha, i, lo, loss, scale, has_mask, has_alpha, want):
 
 @njit(cache=True, nogil=True, inline="always")
 def _rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, has_mask, has_alpha, want):
-    """The view's stress: with ``want``, each row whole (every pair twice, and
-    -1/2 dS/dy_i written to (g0[i], g1[i])); without, the pairs j > i once."""
+    """The view's stress over its pairs i < j, and with ``want`` -1/2 dS/dy
+    added into (g0, g1)."""
     total = 0.0
-    for i in range(y0.shape[0]):
-        Mi = mask[i] if has_mask else mask.ravel()  # never read without a mask
-        row, f0, f1 = _row(D[i], y0, y1, Mi, alpha, i, 0 if want else i + 1, loss, scale,
-                           has_mask, has_alpha, want)
+    for i in range(y0.shape[0] - 1):
+        j = i + 1
+        row, f0, f1 = _row(D[i, j:], y0[j:], y1[j:], mask[i, j:] if has_mask else mask[0, 0:0],
+                           alpha[j:] if has_alpha else alpha, y0[i], y1[i],
+                           alpha[i] if has_alpha else 1.0, g0[j:] if want else g0, g1[j:] if want else g1,
+                           loss, scale, has_mask, has_alpha, want)
         total += row
         if want:
-            g0[i] = -f0
-            g1[i] = -f1
-    return 0.5 * total if want else total
+            g0[i] -= f0
+            g1[i] -= f1
+    return total
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -142,9 +146,9 @@ _DENSE = (_dense_l2, _dense_huber, _dense_soft_l1)  # by loss code
 
 
 def dense_view(D, y0, y1, mask, alpha, loss, scale, g0, g1):
-    """Stress of one view over its pairs i < j (D symmetric, zero diagonal);
-    writes -1/2 dS/dy into (g0, g1) unless they are empty. ``mask`` (n x n
-    booleans, symmetric) and ``alpha`` (n weights) are skipped when empty."""
+    """Stress of one view over its pairs i < j (D and ``mask`` read above the
+    diagonal); adds -1/2 dS/dy into (g0, g1) unless they are empty. ``mask``
+    (n x n booleans) and ``alpha`` (n weights) are skipped when empty."""
     return _DENSE[loss](D, y0, y1, mask, alpha, scale, g0, g1)
 
 
@@ -390,9 +394,8 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
     """(stress, dS/dY or None) of one view: dense (``D``) or over ``pairs``."""
     y0, y1 = np.ascontiguousarray(Y[:, 0]), np.ascontiguousarray(Y[:, 1])
     n = len(Y)
-    make = np.empty if pairs is None else np.zeros  # the dense kernel writes every row
-    g0 = make(n) if want_grad else _NONE_F
-    g1 = make(n) if want_grad else _NONE_F
+    g0 = np.zeros(n) if want_grad else _NONE_F
+    g1 = np.zeros(n) if want_grad else _NONE_F
     alpha = _NONE_F if alpha is None else alpha
     if pairs is None:
         total = dense_view(D, y0, y1, _NONE_MASK2 if mask is None else mask, alpha,
