@@ -178,46 +178,61 @@ def pair_view(i, j, d, y0, y1, mask, alpha, loss, scale, g0, g1):
     return total
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _guttman_row(Di, x0, x1, x2, xi, yi, zi, o0, o1, o2):
+    """Row i's pairs (i, j > i) as slices [i + 1:] (so that they vectorise, as
+    the stress kernel's): their stress terms, d_ij^2 and B(X) X terms, row j's
+    added into (o0, o1, o2)."""
+    s = 0.0
+    sq = 0.0
+    f0 = 0.0
+    f1 = 0.0
+    f2 = 0.0
+    for t in range(Di.shape[0]):
+        dx = xi - x0[t]
+        dy = yi - x1[t]
+        dz = zi - x2[t]
+        q = dx * dx + dy * dy + dz * dz
+        d = np.sqrt(q)
+        r = d - Di[t]
+        s += r * r
+        sq += q
+        ratio = Di[t] / (d if d != 0.0 else 1e-5)
+        f0 += ratio * dx
+        f1 += ratio * dy
+        f2 += ratio * dz
+        o0[t] -= ratio * dx
+        o1[t] -= ratio * dy
+        o2[t] -= ratio * dz
+    return s, sq, f0, f1, f2
+
+
 @njit(cache=True, nogil=True, fastmath=_LANES)
 def guttman_pass(D, X, out):
     """One pass of metric SMACOF (de Leeuw; Borg & Groenen 1997, ch. 8) at a 3D
     configuration X: its raw stress sum_{i<j} (d_ij - D_ij)^2 and
     sum_{i<j} d_ij^2, and the Guttman transform X+ = B(X) X / n written into
     ``out``, with (B(X) X)_i = sum_j D_ij / d_ij (x_i - x_j) and d_ij = 0 read
-    as 1e-5 (scikit-learn's convention). Each row is summed whole (D
-    symmetric, zero diagonal: j = i adds zeros), so that it vectorises as the
-    stress kernel does; the sums over pairs count each pair twice."""
+    as 1e-5 (scikit-learn's convention). D is read above the diagonal."""
     n = X.shape[0]
     x0, x1, x2 = X[:, 0].copy(), X[:, 1].copy(), X[:, 2].copy()
+    o0, o1, o2 = np.zeros(n), np.zeros(n), np.zeros(n)
     stress = 0.0
     squares = 0.0
-    for i in range(n):
-        Di = D[i]
-        xi, yi, zi = x0[i], x1[i], x2[i]
-        s = 0.0
-        sq = 0.0
-        o0 = 0.0
-        o1 = 0.0
-        o2 = 0.0
-        for j in range(n):
-            dx = xi - x0[j]
-            dy = yi - x1[j]
-            dz = zi - x2[j]
-            q = dx * dx + dy * dy + dz * dz
-            d = np.sqrt(q)
-            r = d - Di[j]
-            s += r * r
-            sq += q
-            ratio = Di[j] / (d if d != 0.0 else 1e-5)
-            o0 += ratio * dx
-            o1 += ratio * dy
-            o2 += ratio * dz
+    for i in range(n - 1):
+        j = i + 1
+        s, sq, f0, f1, f2 = _guttman_row(D[i, j:], x0[j:], x1[j:], x2[j:], x0[i], x1[i], x2[i],
+                                         o0[j:], o1[j:], o2[j:])
         stress += s
         squares += sq
-        out[i, 0] = o0 / n
-        out[i, 1] = o1 / n
-        out[i, 2] = o2 / n
-    return 0.5 * stress, 0.5 * squares
+        o0[i] += f0
+        o1[i] += f1
+        o2[i] += f2
+    for i in range(n):
+        out[i, 0] = o0[i] / n
+        out[i, 1] = o1[i] / n
+        out[i, 2] = o2[i] / n
+    return stress, squares
 
 
 def smacof(D: np.ndarray, init: np.ndarray, max_iter: int = 300, eps: float = 1e-6):
@@ -226,9 +241,6 @@ def smacof(D: np.ndarray, init: np.ndarray, max_iter: int = 300, eps: float = 1e
     stop when the stress falls by less than ``eps`` times sum_{i<j} d_ij^2),
     one fused pass per iteration. Returns (X, stress, iterations)."""
     D = np.ascontiguousarray(D, dtype=np.float64)
-    if np.any(np.diagonal(D)):  # the stress has no diagonal; the kernel reads one
-        D = D.copy()
-        np.fill_diagonal(D, 0.0)
     X = np.array(init, dtype=np.float64, order="C")
     if X.ndim != 2 or X.shape[1] != 3:
         raise ValueError(f"smacof embeds in 3D; init is {X.shape}")
