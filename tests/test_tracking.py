@@ -8,6 +8,7 @@ import subprocess
 import time
 import urllib.request
 
+import numpy as np
 import pandas as pd
 import psutil
 import pytest
@@ -16,6 +17,7 @@ from mlflow.tracking import MlflowClient
 from mpe3d.harness.cli import main
 from mpe3d.harness.execute import METRIC_KEYS
 from mpe3d.harness.sweep import load_sweep
+from mpe3d.harness.tracking import CHART_STEPS, chart_steps
 
 from .helpers import run_cli
 
@@ -81,10 +83,26 @@ def test_sweep_logs_every_run_finished(tracked):
         assert set(METRIC_KEYS) <= set(run.data.metrics)
         assert 0 <= run.data.metrics["roa"] and run.data.metrics["iterations"] <= 15
         history = client.get_metric_history(run.info.run_id, "stress_history")
-        assert len(history) == run.data.metrics["iterations"] + 1
+        assert len(history) == run.data.metrics["iterations"] + 1  # short: every step charted
         assert min(m.value for m in history) == pytest.approx(run.data.metrics["stress"])
         files = {a.path for a in client.list_artifacts(run.info.run_id)}
-        assert files == {"reconstruction.ply", "ground_truth.ply", "comparison.png"}
+        assert files == {"reconstruction.ply", "ground_truth.ply", "comparison.png"} | (
+            {"stress_history.csv"} if run.data.metrics["iterations"] else set())
+        if run.data.metrics["iterations"]:
+            local = client.download_artifacts(run.info.run_id, "stress_history.csv")
+            logged = sorted(history, key=lambda m: m.step)
+            assert np.array_equal(np.loadtxt(local), [m.value for m in logged])
+
+
+def test_a_long_stress_history_is_charted_at_log_spaced_steps():
+    """MLflow's chart gets at most CHART_STEPS steps (the whole history goes
+    to stress_history.csv): the first and last always, dense at the start."""
+    for n in (1, 2, 64, 65, 301, 5000):
+        steps = chart_steps(n)
+        assert len(steps) <= min(n, CHART_STEPS) and steps[0] == 0 and steps[-1] == n - 1
+        assert np.all(np.diff(steps) > 0)
+        assert n > CHART_STEPS or np.array_equal(steps, np.arange(n))
+    assert set(range(10)) <= set(chart_steps(301))
 
 
 def test_rerun_starts_nothing_and_says_so(tracked, capsys):
