@@ -142,12 +142,15 @@ def solve_refine(observations: Observations, *, random_state=None,
     start = solve_factorize(observations, random_state=rng)
     X0, P0 = start.points, start.projections
     scale = 1.0
+    radius = float(np.sqrt(np.mean((X0 - X0.mean(axis=0)) ** 2))) or 1.0
+    # An exact start has every residual at rounding level, deep inside any robust
+    # loss's quadratic zone: its robust objective is its stress, and it is kept.
+    exact_start = start.stress <= _EXACT * Stress(observations).target_energy()
     if loss != "l2":
-        spread = Stress(observations).residual_spread(X0, P0, rng)
-        radius = float(np.sqrt(np.mean((X0 - X0.mean(axis=0)) ** 2))) or 1.0
+        spread = 0.0 if exact_start else Stress(observations).residual_spread(X0, P0, rng)
         scale = max(_HUBER_K * spread, 1e-12 * radius)  # noise-free: residuals are ~0
     stress = Stress(observations, loss, scale)
-    f0 = start.stress if loss == "l2" else None  # the start's stress is known
+    f0 = start.stress if loss == "l2" or exact_start else None  # the start's stress is known
     total = stress.target_energy()
     X, P, value, history, iterations, termination = _descend(observations, stress, X0, P0, f0,
                                                              max_iter, tol, total)
@@ -167,7 +170,7 @@ def solve_refine(observations: Observations, *, random_state=None,
             observations, stress, X, P, history, iterations, max_iter, max(tol, REJECTION_TOL), total)
         termination = reason or termination
     exact = iterations == 0 and used_start == "factorize" and value == f0
-    if exact and loss == "l2":
+    if exact and (loss == "l2" or exact_start):
         paper_stress = start.stress
     else:
         paper_stress = value if loss == "l2" and not rejected else Stress(observations).value(X, P)
