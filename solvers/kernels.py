@@ -97,9 +97,11 @@ def _rows(D, y0, y1, mask, alpha, loss, scale, g0, g1, has_mask, has_alpha, want
     """The view's stress over its pairs i < j, and with ``want`` -1/2 dS/dy
     added into (g0, g1)."""
     total = 0.0
+    no_mask = mask.ravel()[0:0]  # never read; an empty row without indexing an empty array
     for i in range(y0.shape[0] - 1):
         j = i + 1
-        row, f0, f1 = _row(D[i, j:], y0[j:], y1[j:], mask[i, j:] if has_mask else mask[0, 0:0],
+        Mi = mask[i, j:] if has_mask else no_mask
+        row, f0, f1 = _row(D[i, j:], y0[j:], y1[j:], Mi,
                            alpha[j:] if has_alpha else alpha, y0[i], y1[i],
                            alpha[i] if has_alpha else 1.0, g0[j:] if want else g0, g1[j:] if want else g1,
                            loss, scale, has_mask, has_alpha, want)

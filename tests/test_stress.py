@@ -1,3 +1,5 @@
+import os
+
 import numpy as np
 import pytest
 
@@ -122,3 +124,32 @@ def test_an_unknown_kernel_is_refused():
     _, _, obs = scene_and_observations(points=30)
     with pytest.raises(ValueError, match="kernel"):
         Stress(obs, kernel="fortran")
+
+
+def test_kernels_index_nothing_out_of_bounds(tmp_path):
+    """Under numba's bounds checking (NUMBA_BOUNDSCHECK=1, a debugging
+    switch) every dense path runs: the loops index no empty array for the
+    inputs they are not given."""
+    import subprocess
+    import sys
+
+    code = """
+import numpy as np
+from mpe3d.solvers import kernels
+rng = np.random.default_rng(0)
+Y = rng.normal(size=(40, 2))
+D = np.linalg.norm(Y[:, None] - Y[None], axis=2)
+mask = np.triu(rng.random((40, 40)) < 0.5, 1)
+mask = mask | mask.T
+alpha = rng.uniform(size=40)
+for m in (None, mask):
+    for a in (None, alpha):
+        for want in (False, True):
+            kernels.view_stress(None, D, Y + 0.1, m, a, kernels.L2, 1.0, want)
+kernels.smacof(D, rng.normal(size=(40, 3)), max_iter=3)
+print("ok")
+"""
+    env = {**os.environ, "NUMBA_BOUNDSCHECK": "1", "NUMBA_CACHE_DIR": str(tmp_path)}
+    done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
