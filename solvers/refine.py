@@ -145,13 +145,14 @@ def solve_refine(observations: Observations, *, random_state=None,
     radius = float(np.sqrt(np.mean((X0 - X0.mean(axis=0)) ** 2))) or 1.0
     # An exact start has every residual at rounding level, deep inside any robust
     # loss's quadratic zone: its robust objective is its stress, and it is kept.
-    exact_start = start.stress <= _EXACT * Stress(observations).target_energy()
+    plain = Stress(observations)  # Eq. 1 itself, whatever the loss
+    total = plain.target_energy()
+    exact_start = start.stress <= _EXACT * total
     if loss != "l2":
-        spread = 0.0 if exact_start else Stress(observations).residual_spread(X0, P0, rng)
+        spread = 0.0 if exact_start else plain.residual_spread(X0, P0, rng)
         scale = max(_HUBER_K * spread, 1e-12 * radius)  # noise-free: residuals are ~0
     stress = Stress(observations, loss, scale)
     f0 = start.stress if loss == "l2" or exact_start else None  # the start's stress is known
-    total = stress.target_energy()
     X, P, value, history, iterations, termination = _descend(observations, stress, X0, P0, f0,
                                                              max_iter, tol, total)
     used_start = "factorize"
@@ -159,7 +160,7 @@ def solve_refine(observations: Observations, *, random_state=None,
         # may sit in a poor basin; the smart start is an N x N MDS, so only when dense
         from .sgd import initial_state
 
-        Xs, Ps = initial_state(observations, Stress(observations), "smart", rng, "smacof")
+        Xs, Ps = initial_state(observations, plain, "smart", rng, "smacof")
         alt = _descend(observations, stress, Xs, Ps, None, max_iter, tol, total)
         if alt[2] < value:
             X, P, value, history, iterations, termination = alt
@@ -173,7 +174,7 @@ def solve_refine(observations: Observations, *, random_state=None,
     if exact and (loss == "l2" or exact_start):
         paper_stress = start.stress
     else:
-        paper_stress = value if loss == "l2" and not rejected else Stress(observations).value(X, P)
+        paper_stress = value if loss == "l2" and not rejected else plain.value(X, P)
     return Reconstruction(points=X, projections=P, stress=paper_stress,
                           stress_history=np.array(history), iterations=iterations,
                           termination=termination,
