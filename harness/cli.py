@@ -345,7 +345,8 @@ def cmd_reconstruct(args) -> int:
 
     if args.seed < 0:
         raise MpeError(f"--seed: expected an integer >= 0, got {args.seed}")
-    out = check_output(args.out)  # every output path before any work, not after it
+    model = _model_out(args.out)  # every output path before any work, not after it
+    out = model / "points3D.ply" if model else check_output(args.out)
     report = check_output(args.report, "--report", (".json",)) if args.report else None
     if report is not None and report.resolve() == out.resolve():
         raise MpeError(f"--report {report}: the same file as --out")
@@ -356,12 +357,28 @@ def cmd_reconstruct(args) -> int:
                       principal_point=args.principal_point)
     check_ids_fit(out, problem.ids)
     result = solve(problem)
-    write_result(out, result, report, {"input": str(args.input), "output": str(out)})
+    extra = {"input": str(args.input), "output": str(model or out)}
+    if model:
+        from .colmap import write_model_folder
+
+        result.report["warnings"] += write_model_folder(model, problem, result)
+    write_result(out, result, report, extra)
     print(_reconstruct_summary(result.report))
     for message in result.report["warnings"]:
         print(f"mpe3d: warning: {message}", file=sys.stderr)
-    print(f"wrote {out}" + (f" and {report}" if report else ""))
+    print(f"wrote {model or out}" + (f" and {report}" if report else ""))
     return 0
+
+
+def _model_out(text: str) -> Path | None:
+    """The folder of a COLMAP model when ``--out`` names one (no file suffix),
+    checked as :func:`check_output` checks a file."""
+    from .colmap import check_model_out
+
+    path = Path(text)
+    if text.endswith(("/", os.sep)) or not path.suffix:
+        return check_model_out(path)
+    return None
 
 
 def _reconstruct_summary(summary: dict) -> str:

@@ -7,7 +7,9 @@ view and row):
 * NPZ with ``view<k>_ids`` and ``view<k>_xy`` or ``view<k>_dist`` arrays, or
   a folder with one ``<name>.npz`` per view holding ``ids`` and ``xy`` or
   ``dist``;
-* JSON ``{"views": [{"ids": [...], "xy": [[x, y], ...]} | {"ids": [...], "dist": [[...]]}]}``.
+* JSON ``{"views": [{"ids": [...], "xy": [[x, y], ...]} | {"ids": [...], "dist": [[...]]}]}``;
+* a COLMAP sparse model folder (``cameras``, ``images``, ``points3D``, binary
+  or text): its tracks as keypoints (:func:`mpe3d.harness.colmap.read_model`).
 
 Known cameras (the fixed setting) come as a ``.npy`` or ``.json`` of K
 matrices: 2x3 with orthonormal rows or 3x3 rotations (orthographic), or 3x4
@@ -169,7 +171,8 @@ def _read_npz(path: Path) -> list[dict]:
 def _read_folder(path: Path) -> list[dict]:
     files = sorted(path.glob("*.npz"))
     if not files:
-        raise MpeError(f"{path}: a folder input needs one .npz file per view (ids, and xy or dist)")
+        raise MpeError(f"{path}: a folder input needs a COLMAP model (cameras, images, points3D) "
+                       "or one .npz file per view (ids, and xy or dist)")
     views = []
     for file in files:
         views += _read_npz(file)
@@ -234,7 +237,9 @@ def read_views(path: str | Path) -> list[dict]:
     """The views of an input file as dicts ``{name, ids, xy | dist}``, not yet checked."""
     path = Path(path)
     if path.is_dir():
-        return _read_folder(path)
+        from .colmap import looks_like_model, read_model
+
+        return read_model(path) if looks_like_model(path) else _read_folder(path)
     if not path.exists():
         raise MpeError(f"{path}: no such file")
     if not path.is_file():

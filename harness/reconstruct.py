@@ -232,6 +232,9 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
         projections = np.asarray(projections, dtype=float)
         projections = projections if projections.shape[1:] == (3, 4) else projections[:, :2]
     views, notes = drop_missing(views, missing, source)
+    centres = [view.get("principal_point") for view in views]
+    if principal_point is None and centres and all(c is not None for c in centres):
+        principal_point = tuple(float(v) for v in centres[0])  # a COLMAP model's cameras
     coordinates = all("xy" in view for view in views)
     if objective is None:
         objective = "reprojection" if coordinates else "stress"
