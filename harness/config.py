@@ -28,6 +28,8 @@ PROJECTIONS = ("fixed", "variable")
 OBSERVE = ("distances", "coordinates")
 INITS = ("smart", "random")
 ALIGNS = ("rigid", "ransac4")
+PIPELINES = ("points", "colmap")
+MATCHINGS = ("auto", "exhaustive", "sequential")
 BACKENDS = ("loky", "dask")  # where a sweep's runs are computed (the runner's choice)
 
 
@@ -46,6 +48,10 @@ class Key:
 
 
 KEYS: dict[str, Key] = {
+    "pipeline": Key("points", str, "points: the paper's input, a sampled cloud seen through K projections; colmap: photos of the mesh from images.count cameras, reconstructed by COLMAP (pycolmap), its points scored and its feature tracks fed to mpe3d (views, visibility, noise, projections, observe, init, align and solver do not apply)", PIPELINES, hashed_at_default=False),
+    "images.count": Key(250, int, "pipeline colmap: photos rendered along the camera spiral (>= 2)", hashed_at_default=False),
+    "images.size": Key(400, int, "pipeline colmap: width and height of each photo in pixels (64 to 4096)", hashed_at_default=False),
+    "images.matching": Key("auto", str, "pipeline colmap: COLMAP's matching: exhaustive, sequential along the camera path, or auto (exhaustive up to 50 photos)", MATCHINGS, hashed_at_default=False),
     "shape": Key("chair", str, "bundled name, mesh path, shapenet:<synset>/<id>, pix3d:<category>/<model>, or torus|box|sphere|cone"),
     "points": Key(512, int, "number N of points sampled area-uniformly on the surface (>= 4)"),
     "views": Key(4, int, "number K of views (>= 2)"),
@@ -287,6 +293,10 @@ def _check_ranges(v: dict[str, Any]) -> None:
         raise bad("noise.amplitude", "must be >= 0")
     if v["seed"] < 0:
         raise bad("seed", "must be >= 0")
+    if v["images.count"] < 2:
+        raise bad("images.count", "must be at least 2")
+    if not 64 <= v["images.size"] <= 4096:
+        raise bad("images.size", "must be between 64 and 4096 pixels")
     if v["observe"] == "coordinates" and v["noise.type"] == "distance":
         raise MpeError("noise.type: distance noise perturbs distance matrices; with "
                        "observe=coordinates use correspondence noise", key="noise.type")

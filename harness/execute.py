@@ -46,7 +46,7 @@ class RunResult:
     def summary(self) -> dict[str, Any]:
         """The JSON contract of ``mpe3d run --json``."""
         out: dict[str, Any] = {"config": self.config.nested(), "config_hash": self.config.hash()}
-        out.update({k: self.metrics[k] for k in METRIC_KEYS})
+        out.update({k: self.metrics[k] for k in METRIC_KEYS if k in self.metrics})
         out.update({k: v for k, v in self.metrics.items() if k not in METRIC_KEYS})
         out["visible_per_view"] = self.scene.visible_per_view
         out["warnings"] = self.facts.get("warnings", [])
@@ -66,6 +66,12 @@ def run(config: RunConfig) -> RunResult:
 def _run(config: RunConfig) -> RunResult:
     start = time.perf_counter()
     streams = seed_streams(config["seed"])
+    if config["pipeline"] == "colmap":
+        from . import pipeline_colmap
+
+        scene, recon, aligned, scores, facts = pipeline_colmap.run(config, streams)
+        return RunResult(config=config, metrics=scores, scene=scene, reconstruction=recon,
+                         aligned=aligned, facts=facts, wall_s=time.perf_counter() - start)
     scene = build_scene(config, streams)
     observations, facts = observe(scene, config, streams)
     with collect_notes() as notes:
@@ -152,6 +158,7 @@ def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
              "visible_per_view": ",".join(map(str, result.scene.visible_per_view))}
     if result.facts.get("warnings"):
         facts["warnings"] = " | ".join(result.facts["warnings"])
+    keep_clouds = keep_clouds and len(result.aligned) > 0  # COLMAP may make no model
     picture = _picture(result) if keep_clouds else None
     if isinstance(picture, str):
         facts["picture_error"], picture = picture, None

@@ -21,7 +21,8 @@ from pathlib import Path
 
 # The harness modules on the path from a config to its metrics; every module
 # of ``solvers`` counts too, so a new solver is covered without a list to edit.
-NUMERIC_MODULES = ("execute", "metrics", "noise", "observe", "shapes", "views", "visibility")
+NUMERIC_MODULES = ("colmap", "execute", "metrics", "noise", "observe", "photos", "pipeline_colmap",
+                   "shapes", "views", "visibility")
 _IGNORED_FIELDS = {"ctx", "type_comment", "kind"}
 
 

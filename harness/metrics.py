@@ -75,13 +75,33 @@ def chamfer(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
 
 
 def earth_movers(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
-    """Eq. 4: sum of distances over the optimal bijection (exact transport)."""
-    n = len(a)
+    """Eq. 4: sum of distances over the optimal bijection (exact transport).
+
+    Clouds of different sizes (COLMAP's points against surface samples) are
+    matched by the optimal transport of equal masses 1/len per point; the
+    sum form then counts len(a) points, so both forms agree with Eq. 4
+    whenever the sizes are equal.
+    """
+    n, m = len(a), len(b)
     M = cdist(a, b)
-    w = np.full(n, 1.0 / n)
-    plan = ot.emd(w, w, M, numItermax=max(100_000, 50 * n * n))
-    total = float(n * np.sum(plan * M))
-    return {"emd": total, "emd_mean": total / n, "emd_x100": 100.0 * total / n}
+    plan = ot.emd(np.full(n, 1.0 / n), np.full(m, 1.0 / m), M,
+                  numItermax=max(100_000, 50 * n * m))
+    mean = float(np.sum(plan * M))
+    return {"emd": n * mean, "emd_mean": mean, "emd_x100": 100.0 * mean}
+
+
+def similarity_transform(source: np.ndarray, target: np.ndarray, mirror: bool = False):
+    """(s, Q, t) minimising sum ||target_i - (s Q source_i + t)||^2 (Umeyama), Q a
+    rotation, or any orthogonal matrix with ``mirror``."""
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    a, b = source - mu_s, target - mu_t
+    U, S, Vt = np.linalg.svd(b.T @ a)
+    d = np.ones(3)
+    if not mirror and np.linalg.det(U @ Vt) < 0:
+        d[2] = -1.0
+    Q = (U * d) @ Vt
+    s = float(np.sum(S * d) / np.sum(a ** 2))
+    return s, Q, mu_t - s * Q @ mu_s
 
 
 def roa(source: np.ndarray, target: np.ndarray) -> float:

@@ -285,6 +285,22 @@ def faster_and_as_exact(frame: pd.DataFrame, solver: str, than: str = "sgd",
     return Verdict(HOLDS if ok else FAILS, numbers, len(rows[rows["solver.name"].isin([solver, than])]))
 
 
+@criterion(lambda below, min_share, often: f"COLMAP's largest model registers < "
+           f"{100 * min_share:g}% of the photos in >= {100 * often:g}% of the runs with < {below} photos")
+def colmap_fails_below(frame: pd.DataFrame, solver: str | None, below: int = 200,
+                       min_share: float = 0.5, often: float = 0.5) -> Verdict:
+    """COLMAP "often failed to initialize" with fewer than ``below`` photos."""
+    rows = _finished(frame, None)
+    rows = rows[rows["pipeline"] == "colmap"] if "pipeline" in rows else rows.iloc[0:0]
+    few = rows[rows["images.count"] < below]
+    if few.empty:
+        return Verdict(NOT_ENOUGH, f"no COLMAP runs with fewer than {below} photos", 0)
+    failed = few["registered_share"] < min_share
+    numbers = "; ".join(f"{int(n)} photos: {100 * share:.0f}% registered"
+                        for n, share in rows.groupby("images.count")["registered_share"].mean().items())
+    return Verdict(HOLDS if failed.mean() >= often else FAILS, numbers, len(rows))
+
+
 CLAIMS: tuple[Claim, ...] = (
     Claim("smart-init", "Smart initialization outperforms random initialization by an order of "
           "magnitude (CD).", "Sec. 'The Effect of Smart Initialization', Fig. smart_init_experiment",
@@ -330,6 +346,9 @@ CLAIMS: tuple[Claim, ...] = (
     Claim("raytrace-three-views", "With only 5 projections, most points are present in at least 3 "
           "viewpoints.", "Sec. 'Scalability', Fig. raytrace_visible", "paper-raytrace-counts",
           partial(most_in_three_views), solvers=("any",)),
+    Claim("colmap-fails-below-200", "COLMAP often failed to initialize reliably when fewer than "
+          "200 images were used.", "Sec. 'Exploratory Integration with COLMAP'", "paper-colmap",
+          partial(colmap_fails_below), solvers=("any",)),
     Claim("ours-faster", "(ours) refine reaches at least 3DMPE's accuracy, at least 5× faster.",
           "mpe3d, not the paper", "paper-points", partial(faster_and_as_exact), solvers=("refine",)),
 )

@@ -51,6 +51,7 @@ def runs(tracker, experiment: str, hashes=None) -> pd.DataFrame:
                 frame[key] = pd.to_numeric(frame[key])
     variants = frame["solver.method"] if "solver.method" in frame else [None] * len(frame)
     frame["method"] = [method_label(s, v) for s, v in zip(frame["solver.name"], variants)]
+    frame.loc[frame["pipeline"] == "colmap", "method"] = "COLMAP"  # the photos' pipeline: no solver
     return frame.reset_index(drop=True)
 
 
@@ -62,7 +63,7 @@ def finished(frame: pd.DataFrame) -> pd.DataFrame:
 
 
 def published(table: str) -> pd.DataFrame:
-    """The paper's published numbers of ``table`` (allmetrics or allmetricspix3d).
+    """The paper's published numbers of ``table`` (allmetrics, allmetricspix3d or colmap).
 
     Columns: table, dataset, category, metric (CD or EMD), method, value. The
     learning-based rows (PSGN, 3D-LMNet) are Mandikal et al. (2018) as the

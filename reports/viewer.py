@@ -50,10 +50,15 @@ def load_clouds(client, run_id: str, limit: int = MAX_POINTS) -> dict | None:
             except Exception:  # noqa: BLE001 - no artifacts (--no-artifacts): nothing to show
                 return None
             clouds[key] = np.asarray(trimesh.load(path).vertices, dtype=float)
-    rng = np.random.default_rng(0)  # the same subsample on every render
-    n = len(clouds["truth"])
-    keep = np.sort(rng.choice(n, limit, replace=False)) if n > limit else np.arange(n)
-    return {key: np.round(cloud[keep], 4).tolist() for key, cloud in clouds.items()}
+    out = {}
+    for key, cloud in clouds.items():
+        # the same subsample on every render, and the same rows of both clouds when they
+        # correspond (COLMAP's points do not: each cloud is sampled on its own)
+        rng = np.random.default_rng(0)
+        n = len(cloud)
+        keep = np.sort(rng.choice(n, limit, replace=False)) if n > limit else np.arange(n)
+        out[key] = np.round(cloud[keep], 4).tolist()
+    return out
 
 
 def add_viewers(report, frame: pd.DataFrame, client, experiment: str) -> int:

@@ -1,0 +1,167 @@
+"""The ``colmap`` pipeline of a run: photos -> COLMAP -> its points, and its tracks -> mpe3d.
+
+The paper's Table colmap (Section "Exploratory Integration with COLMAP"):
+COLMAP reconstructs the mesh from rendered photos, its sparse points are
+moved into the mesh's frame by the similarity that takes its camera centres
+onto the true ones (the only use of ground truth before scoring), and scored
+with CD and EMD against the surface samples, as every other table is.
+
+Then the paper's own pipeline: COLMAP's feature tracks (its verified
+matches joined into tracks, :func:`mpe3d.harness.colmap.database_tracks`),
+not its points, are fed to mpe3d, by bundle adjustment (``bundle``) and by
+the 3DMPE stress of their pixel distances (``sgd``, the paper's, and
+``refine``, ours), each cloud scored against COLMAP's own triangulation of
+the same tracks and against the surface (on those tracks).
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from mpe3d import solvers
+
+from . import colmap, metrics, photos, shapes
+from .config import RunConfig
+from ..errors import MpeError
+from .observe import Scene
+from .visibility import SELF_HIT_TOLERANCE
+
+TRACK_METHODS = ("bundle", "sgd", "refine")  # what COLMAP's tracks are fed to
+MIN_ALIGNED = 3  # registered photos (or shared tracks) a similarity needs
+
+
+def seen_in_photos(mesh, points: np.ndarray, cameras: photos.PhotoCameras) -> np.ndarray:
+    """(K, N) visibility of ``points`` in the photos: in the frame, in front,
+    and no surface between the point and the camera centre."""
+    pixels, depth = cameras.project(points)
+    inside = (depth > 0) & np.all((pixels >= 0) & (pixels < [cameras.width, cameras.height]), axis=2)
+    for k, centre in enumerate(cameras.centres):
+        rows = np.flatnonzero(inside[k])
+        towards = centre - points[rows]
+        towards /= np.linalg.norm(towards, axis=1, keepdims=True)
+        origins = points[rows] + SELF_HIT_TOLERANCE * towards
+        # the cameras stand outside the bounding sphere: any hit is between point and camera
+        blocked = mesh.ray.intersects_any(origins, towards)
+        inside[k, rows[blocked]] = False
+    return inside
+
+
+def _to_mesh_frame(sfm: colmap.SfmResult, cameras: photos.PhotoCameras, names: list[str]):
+    """The similarity from COLMAP's frame to the mesh's, fitted on the camera
+    centres of the registered photos (true against estimated)."""
+    order = {name: k for k, name in enumerate(names)}
+    registered = [n for n in names if n in sfm.registered]
+    true = cameras.centres[[order[n] for n in registered]]
+    estimated = np.array([sfm.centres[n] for n in registered])
+    return metrics.similarity_transform(estimated, true)
+
+
+def _apply(transform, points: np.ndarray) -> np.ndarray:
+    s, Q, t = transform
+    return s * points @ Q.T + t
+
+
+def _scores(cloud: np.ndarray, truth: np.ndarray, prefix: str = "") -> dict[str, float]:
+    out = {**metrics.chamfer(cloud, truth), **metrics.earth_movers(cloud, truth)}
+    return {f"{prefix}{k}": v for k, v in out.items()}
+
+
+def _fed_to(method: str, tracks: colmap.FeatureTracks, principal_point):
+    """mpe3d's cloud of COLMAP's tracks (ids = track index) by ``method``."""
+    from .reconstruct import reconstruct
+
+    views = tracks.views()
+    if method == "bundle":
+        return reconstruct(views, camera="perspective", principal_point=tuple(principal_point))
+    return reconstruct(views, objective="stress", solver=method)
+
+
+def _track_scores(tracks, sfm, to_mesh, truth, principal_point) -> tuple[dict, list[str]]:
+    """Track counts, and each method's cloud against COLMAP's triangulation of the same tracks."""
+    per_track = tracks.views_per_track()
+    out = {"tracks_ge2": int(np.sum(per_track >= 2)), "tracks_ge3": int(np.sum(per_track >= 3)),
+           "tracks_conflicting": tracks.conflicting}
+    notes: list[str] = []
+    pairs = colmap.triangulated(tracks, sfm)
+    out["tracks_triangulated"] = len(pairs)
+    if len(pairs) < MIN_ALIGNED or len(tracks.views()) < 2:
+        return out, notes
+    row = {int(i): r for r, i in enumerate(sfm.point_ids)}
+    colmap_points = _apply(to_mesh, sfm.points)
+    for method in TRACK_METHODS:
+        start = time.perf_counter()
+        try:
+            result = _fed_to(method, tracks, principal_point)
+        except MpeError as exc:
+            notes.append(f"tracks -> {method}: {exc}")
+            continue
+        out[f"tracks_{method}_s"] = time.perf_counter() - start
+        placed = ~np.isin(result.ids, result.report["unplaced"]["ids"])
+        shared = [(k, row[pairs[int(i)]]) for k, i in enumerate(result.ids)
+                  if placed[k] and int(i) in pairs]
+        if len(shared) < MIN_ALIGNED:
+            continue
+        ours, theirs = (np.array(c) for c in zip(*shared))
+        fit = metrics.similarity_transform(result.points[ours], colmap_points[theirs], mirror=True)
+        mine = _apply(fit, result.points[ours])
+        out[f"tracks_{method}_cd_x100"] = metrics.chamfer(mine, colmap_points[theirs])["cd_x100"]
+        out[f"tracks_{method}_rms"] = float(np.sqrt(np.mean(np.sum(
+            (mine - colmap_points[theirs]) ** 2, axis=1))))
+        # against the surface on the same tracks too: a track that COLMAP left out may
+        # lie at any depth (two views a degree apart), which would swamp a mean
+        out[f"tracks_{method}_surface_cd_x100"] = metrics.chamfer(mine, truth)["cd_x100"]
+    return out, notes
+
+
+def run(config: RunConfig, streams) -> tuple[Scene, solvers.Reconstruction, np.ndarray, dict, dict]:
+    """Render, run COLMAP, score: the scene, COLMAP's cloud as a Reconstruction
+    (in the mesh frame), that cloud, the metrics and facts."""
+    mesh = shapes.load_shape(config["shape"])
+    truth = shapes.sample_points(mesh, config["points"], streams["sampling"])
+    cameras = photos.spiral_cameras(config["images.count"], size=config["images.size"])
+    scene = Scene(mesh=mesh, points=truth, rotations=cameras.rotations,
+                  visible=seen_in_photos(mesh, truth, cameras))
+    scores: dict[str, float] = {}
+    with tempfile.TemporaryDirectory(prefix="mpe3d-colmap-") as work:
+        work = Path(work)
+        start = time.perf_counter()
+        images = photos.render(mesh, cameras, seed=config["seed"])
+        names = photos.save_images(images, work / "images")
+        scores["render_s"] = time.perf_counter() - start
+        sfm = colmap.run_sfm(work / "images", names, work, focal=cameras.focal,
+                             principal_point=cameras.principal_point,
+                             matching=config["images.matching"], seed=config["seed"])
+        tracks = colmap.database_tracks(sfm.database)
+    scores.update(sfm.seconds)
+    colmap_s = sum(sfm.seconds.values())
+    scores.update(runtime_s=colmap_s, iterations=0, images=len(names),
+                  registered_images=len(sfm.registered),
+                  registered_share=len(sfm.registered) / len(names), colmap_models=sfm.models,
+                  colmap_points=len(sfm.points), points_kept=len(truth))
+    facts = {"colmap_version": colmap.colmap_version(),
+             "matching": colmap.matching_for(len(names), config["images.matching"]), "warnings": []}
+    cloud = np.zeros((0, 3))
+    if len(sfm.registered) >= MIN_ALIGNED and len(sfm.points):
+        to_mesh = _to_mesh_frame(sfm, cameras, names)
+        cloud = _apply(to_mesh, sfm.points)
+        scores.update(_scores(cloud, truth))
+        scores["reprojection_px"] = sfm.reprojection_px
+        scores["focal_error"] = abs(sfm.focal / cameras.focal - 1.0)
+        track_scores, notes = _track_scores(tracks, sfm, to_mesh, truth, cameras.principal_point)
+        scores.update(track_scores)
+        facts["warnings"] += notes
+    else:
+        per_track = tracks.views_per_track()
+        scores.update(tracks_ge2=int(np.sum(per_track >= 2)), tracks_ge3=int(np.sum(per_track >= 3)))
+        facts["warnings"].append(f"COLMAP registered {len(sfm.registered)} of {len(names)} photos: "
+                                 "no model to score")
+    termination = (f"COLMAP registered {len(sfm.registered)} of {len(names)} photos in "
+                   f"{sfm.models} model(s), {len(sfm.points)} points")
+    recon = solvers.Reconstruction(points=cloud, projections=cameras.rotations[:, :2],
+                                   stress=float("nan"), stress_history=np.zeros(0), iterations=0,
+                                   termination=termination, runtime_s=colmap_s)
+    return scene, recon, cloud, scores, facts
