@@ -257,6 +257,21 @@ def looks_like_model(folder: Path) -> bool:
     return model_files(folder) is not None
 
 
+# The least bytes one record of each binary file can take: a count beyond what
+# the file can hold is a damaged file, which COLMAP would try to read for minutes.
+MIN_RECORD_BYTES = {"cameras": 24, "images": 73, "points3D": 51}
+
+
+def _check_binary_counts(folder: Path) -> None:
+    for name, least in MIN_RECORD_BYTES.items():
+        path = folder / f"{name}.bin"
+        size = path.stat().st_size
+        count = int.from_bytes(path.read_bytes()[:8], "little") if size >= 8 else -1
+        if count < 0 or count * least > size - 8:
+            raise MpeError(f"{path}: damaged ({size} bytes cannot hold the "
+                           f"{max(count, 0):,} records its header declares)")
+
+
 def read_model(folder: str | Path) -> list[dict]:
     """A COLMAP sparse model as keypoint views: one per registered image, its
     point3D ids as ids and their keypoints in pixels.
@@ -272,6 +287,8 @@ def read_model(folder: str | Path) -> list[dict]:
     if model_files(folder) is None:
         _check_model_folder(folder)
         raise MpeError(f"{folder}: no COLMAP model (cameras, images and points3D as .bin or .txt)")
+    if model_files(folder) == "bin":
+        _check_binary_counts(folder)
     try:
         model = pycolmap.Reconstruction(folder)
     except Exception as exc:  # pycolmap raises RuntimeError/ValueError with COLMAP's check text

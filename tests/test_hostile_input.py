@@ -121,7 +121,7 @@ def good_csv(tmp_path):
 
 @pytest.mark.parametrize("flags, message", [
     (["--seed", "-1"], "--seed: expected an integer >= 0, got -1"),
-    (["--out", "{tmp}"], "is a folder, not a file"),
+    (["--out", "{tmp}"], "the folder holds other files; a COLMAP model goes into a new or empty"),
     (["--out", "{tmp}/folder.ply"], "is a folder, not a file"),
     (["--out", "/proc/cloud.ply"], "cannot write in /proc"),
     (["--report", "{tmp}/missing/report.json"], "folder {tmp}/missing does not exist"),

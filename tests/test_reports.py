@@ -16,7 +16,7 @@ from .helpers import SHARED, run_cli
 
 TABLES = ["claims", "allmetrics", "allmetrics_seen2", "allmetricspix3d", "allmetricspix3d_seen2",
           "smart_init", "noise_distance", "noise_correspondence", "views", "points", "visibility",
-          "raytrace_visible", "angle_band", "occlusion"]
+          "raytrace_visible", "angle_band", "occlusion", "colmap", "colmap_tracks"]
 FIGURES = ["smart_init", "noise_distance", "noise_correspondence", "views_runtime", "views_metrics",
            "points_runtime", "points_metrics", "visibility", "raytrace_visible", "angle_band"]
 
@@ -53,7 +53,7 @@ def test_report_folder_holds_every_table_and_figure(tiny_report):
         assert f"figures/{name}.png" in index and f"figures/{name}.png" in page
     for name in TABLES:
         assert f"tables/{name}.md" in index
-    assert re.search(r"Scale tiny; \d+ runs in 11 experiments: \d+ run now, 0 reused", index)
+    assert re.search(r"Scale tiny; \d+ runs in 12 experiments: \d+ run now, 0 reused", index)
     assert "wall time for the runs" in index
     assert "wrote report/index.html" in first.stdout
     # Each parent run in MLflow carries its experiment's part of the report.
@@ -83,7 +83,7 @@ def test_tables_hold_the_runs_numbers(tiny_report):
 def test_rerun_reuses_every_run(tiny_report):
     folder, _, _, second = tiny_report
     index = (folder / "again" / "index.md").read_text()
-    assert re.search(r"\d+ runs in 11 experiments: 0 run now, \d+ reused", index)
+    assert re.search(r"\d+ runs in 12 experiments: 0 run now, \d+ reused", index)
     assert sorted(p.name for p in (folder / "again" / "figures").iterdir()) == \
         sorted(p.name for p in (folder / "report" / "figures").iterdir())
 
