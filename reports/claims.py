@@ -291,7 +291,9 @@ def colmap_fails_below(frame: pd.DataFrame, solver: str | None, below: int = 200
                        min_share: float = 0.5, often: float = 0.5) -> Verdict:
     """COLMAP "often failed to initialize" with fewer than ``below`` photos."""
     rows = _finished(frame, None)
-    rows = rows[rows["pipeline"] == "colmap"] if "pipeline" in rows else rows.iloc[0:0]
+    if not {"pipeline", "images.count", "registered_share"} <= set(rows.columns):
+        return Verdict(NOT_ENOUGH, "no COLMAP runs", 0)
+    rows = rows[rows["pipeline"] == "colmap"]
     few = rows[rows["images.count"] < below]
     if few.empty:
         return Verdict(NOT_ENOUGH, f"no COLMAP runs with fewer than {below} photos", 0)

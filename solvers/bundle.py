@@ -486,10 +486,27 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, solv
     starts = []
     for mirror in (1.0, -1.0):  # -X seen through -R[:2] gives the same weak-perspective images
         for factor in _FOCAL_STARTS:
-            starts.append(((mirror * X, affine_cameras(
-                "perspective", mirror * R[:, :2], s, t, focal=factor * size,
-                principal_point=c, shared_focal=shared_focal)), None))
+            cameras = affine_cameras("perspective", mirror * R[:, :2], s, t, focal=factor * size,
+                                     principal_point=c, shared_focal=shared_focal)
+            starts.append(((_in_front(mirror * X, cameras, tracks), cameras), None))
     return _best_of(starts, tracks, solve)[0]
+
+
+def _in_front(X: np.ndarray, cameras: Cameras, tracks: Tracks, keep: float = 0.5) -> np.ndarray:
+    """X with each point that some view of it would see behind its pinhole pulled
+    towards the centroid (which every camera sees at depth f / s) until it stands
+    at ``keep`` times that depth or more: one such point would make the whole
+    start's cost infinite. Long sequences round an object (COLMAP's tracks of
+    250 photos) hold a few two-view points far out in depth."""
+    R = cameras.current_rotations()
+    toward = np.einsum("ti,ti->t", R[tracks.view, 2], X[tracks.point])  # X is centred
+    depth = cameras.params[tracks.view, 5]
+    behind = toward < (keep - 1.0) * depth  # depth + toward < keep * depth
+    if not behind.any():
+        return X
+    alpha = np.ones(len(X))
+    np.minimum.at(alpha, tracks.point[behind], (1.0 - keep) * depth[behind] / -toward[behind])
+    return X * alpha[:, None]
 
 
 def _bounded_depth(X: np.ndarray, limit: float = _ELONGATION) -> np.ndarray:

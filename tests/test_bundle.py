@@ -229,3 +229,24 @@ def test_on_dino_three_percent_wrong_matches_cost_the_clean_observations_under_t
     assert after.rms(~wrong) <= 1.1 * before.rms(everything)
     moved = np.linalg.norm(z - clean.z, axis=1) > 5
     assert after.dropped[moved].mean() >= 0.95 and after.converged
+
+
+def test_a_start_point_behind_a_pinhole_is_pulled_in_front_and_the_rest_left_alone(rng):
+    """One start point behind a camera made every perspective start's cost
+    infinite (COLMAP's tracks of 250 photos round the chair): it is moved
+    towards the centroid until every camera of it sees it at half the centroid's
+    depth or more."""
+    cameras = affine_cameras("perspective", exp_so3(rng.standard_normal((K, 3)))[:, :2],
+                             np.full(K, 2.0), np.zeros((K, 2)), focal=400.0,
+                             principal_point=np.zeros(2))
+    X, tracks = _tracks(cameras, rng)
+    X = 0.2 * (X - X.mean(axis=0))  # well in front of every camera (depth f / s = 200) ...
+    R, depth = cameras.current_rotations(), cameras.params[:, 5]
+    X[5] = -3.0 * depth[0] * R[0, 2]  # ... but point 5, far behind camera 0, which sees it
+    assert np.any((tracks.point == 5) & (tracks.view == 0))
+    moved = bundle._in_front(X, cameras, tracks)
+    seen_at = depth[tracks.view] + np.einsum("ti,ti->t", R[tracks.view, 2], moved[tracks.point])
+    assert seen_at.min() >= 0.5 * depth.min() * (1 - 1e-12)
+    unchanged = np.ones(len(X), dtype=bool)
+    unchanged[5] = False
+    assert np.array_equal(moved[unchanged], X[unchanged]) and not np.allclose(moved[5], X[5])
