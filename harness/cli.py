@@ -28,8 +28,25 @@ def _number(value) -> str:
     return f"{value:.4g}" if isinstance(value, float) else str(value)
 
 
+def _print_colmap_summary(summary: dict) -> None:
+    cfg, images = summary["config"], summary["config"]["images"]
+    print(f"shape {cfg['shape']}, {images['count']} photos of {images['size']} px, COLMAP "
+          f"against N={cfg['points']} surface samples, seed {cfg['seed']}")
+    print(summary["termination"])
+    if "cd_x100" in summary:
+        print(f"cd_x100={_number(summary['cd_x100'])}  emd_x100={_number(summary['emd_x100'])}  "
+              f"reprojection {summary['reprojection_px']:.3f} px")
+    tracks = [f"{k}={_number(summary[k])}" for k in summary if k.startswith("tracks_")
+              and k.endswith(("ge2", "ge3", "triangulated", "cd_x100"))]
+    print("COLMAP's tracks: " + "  ".join(tracks))
+    print(f"render {summary['render_s']:.1f} s, COLMAP {summary['runtime_s']:.1f} s, "
+          f"total {summary['wall_s']:.1f} s")
+
+
 def _print_summary(summary: dict) -> None:
     cfg = summary["config"]
+    if cfg.get("pipeline") == "colmap":
+        return _print_colmap_summary(summary)
     print(f"shape {cfg['shape']}, N={cfg['points']}, K={cfg['views']}, "
           f"visibility {cfg['visibility']['mode']}, projections {cfg['projections']}, "
           f"solver {cfg['solver']['name']} (init {cfg['init']}), seed {cfg['seed']}")

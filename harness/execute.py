@@ -172,6 +172,9 @@ def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
 
 def _title(result: RunResult) -> str:
     config = result.config
+    if config["pipeline"] == "colmap":
+        return (f"{config['shape']}  COLMAP, {config['images.count']} photos  "
+                f"CD x100={result.metrics['cd_x100']:.3g}")
     return (f"{config['shape']}  N={config['points']}  K={config['views']}  {config['projections']}  "
             f"{config.solver}  ROA={result.metrics['roa']:.3g}")
 
@@ -197,6 +200,8 @@ def write_outputs(result: RunResult, out: Path) -> list[Path]:
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "ground_truth.ply", out / "reconstruction.ply", out / "comparison.png"]
     trimesh.PointCloud(result.scene.points).export(paths[0])
+    if not len(result.aligned):  # COLMAP made no model: nothing to compare
+        return paths[:1]
     trimesh.PointCloud(result.aligned).export(paths[1])
     render_comparison(result.scene.points, result.aligned, paths[2], title=_title(result))
     return paths
