@@ -188,3 +188,17 @@ def test_pycolmap_missing_is_one_line(monkeypatch):
     monkeypatch.setattr(builtins, "__import__", no_pycolmap)
     with pytest.raises(MpeError, match="pip install pycolmap"):
         colmap.require_pycolmap()
+
+
+def test_the_colmap_keys_are_checked_and_leave_older_runs_hashes_alone():
+    from mpe3d.harness.config import make_config
+
+    before = make_config({"points": 256}).hash()
+    assert make_config({"points": 256, "pipeline": "points", "images.count": 250}).hash() == before
+    assert make_config({"pipeline": "colmap", "images.count": 25}).hash() != before
+    for bad, message in [({"images.count": 1}, "images.count: must be at least 2"),
+                         ({"images.size": 32}, "images.size: must be between 64 and 4096"),
+                         ({"images.matching": "vocab"}, "images.matching: 'vocab' is not one of"),
+                         ({"pipeline": "nerf"}, "pipeline: 'nerf' is not one of points, colmap")]:
+        with pytest.raises(MpeError, match=message):
+            make_config(bad)
