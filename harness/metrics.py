@@ -104,6 +104,37 @@ def similarity_transform(source: np.ndarray, target: np.ndarray, mirror: bool = 
     return s, Q, mu_t - s * Q @ mu_s
 
 
+def robust_similarity(source: np.ndarray, target: np.ndarray, rng: np.random.Generator,
+                      mirror: bool = False, trials: int = RANSAC_TRIALS // 5):
+    """:func:`similarity_transform` that a minority of wild pairs cannot bend:
+    least median of squares over ``trials`` fits to 3 random pairs, then the
+    least-squares fit to the pairs within 3 robust sigmas of it, twice."""
+    n = len(source)
+    if n <= 3:
+        return similarity_transform(source, target, mirror)
+
+    def misfit(fit):
+        s, Q, t = fit
+        return np.linalg.norm(s * source @ Q.T + t - target, axis=1)
+
+    best, best_median = None, np.inf
+    for _ in range(trials):
+        pick = rng.choice(n, 3, replace=False)
+        fit = similarity_transform(source[pick], target[pick], mirror)
+        median = float(np.median(misfit(fit)))
+        if np.isfinite(median) and median < best_median:
+            best, best_median = fit, median
+    if best is None:
+        return similarity_transform(source, target, mirror)
+    for _ in range(2):
+        r = misfit(best)
+        inliers = r <= 3.0 * 1.4826 * max(np.median(r), 1e-300)
+        if np.count_nonzero(inliers) < 3:
+            break
+        best = similarity_transform(source[inliers], target[inliers], mirror)
+    return best
+
+
 def roa(source: np.ndarray, target: np.ndarray) -> float:
     """RMSE over corresponding points after the rigid O(3) alignment."""
     moved = align_rigid(source, target)

@@ -50,14 +50,14 @@ def seen_in_photos(mesh, points: np.ndarray, cameras: photos.PhotoCameras) -> np
     return inside
 
 
-def _to_mesh_frame(sfm: colmap.SfmResult, cameras: photos.PhotoCameras, names: list[str]):
-    """The similarity from COLMAP's frame to the mesh's, fitted on the camera
-    centres of the registered photos (true against estimated)."""
+def _to_mesh_frame(sfm: colmap.SfmResult, cameras: photos.PhotoCameras, names: list[str], rng):
+    """The similarity from COLMAP's frame to the mesh's, fitted robustly on the
+    camera centres of the registered photos (true against estimated)."""
     order = {name: k for k, name in enumerate(names)}
     registered = [n for n in names if n in sfm.registered]
     true = cameras.centres[[order[n] for n in registered]]
     estimated = np.array([sfm.centres[n] for n in registered])
-    return metrics.similarity_transform(estimated, true)
+    return metrics.robust_similarity(estimated, true, rng)
 
 
 def _apply(transform, points: np.ndarray) -> np.ndarray:
@@ -80,7 +80,7 @@ def _fed_to(method: str, tracks: colmap.FeatureTracks, principal_point):
     return reconstruct(views, objective="stress", solver=method)
 
 
-def _track_scores(tracks, sfm, to_mesh, truth, principal_point) -> tuple[dict, list[str]]:
+def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[dict, list[str]]:
     """Track counts, and each method's cloud against COLMAP's triangulation of the same tracks."""
     per_track = tracks.views_per_track()
     out = {"tracks_ge2": int(np.sum(per_track >= 2)), "tracks_ge3": int(np.sum(per_track >= 3)),
@@ -106,11 +106,14 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point) -> tuple[dict, l
         if len(shared) < MIN_ALIGNED:
             continue
         ours, theirs = (np.array(c) for c in zip(*shared))
-        fit = metrics.similarity_transform(result.points[ours], colmap_points[theirs], mirror=True)
+        # robustly: a few tracks placed far out in depth (two views a degree apart)
+        # would bend a least-squares fit of the whole cloud
+        fit = metrics.robust_similarity(result.points[ours], colmap_points[theirs], rng, mirror=True)
         mine = _apply(fit, result.points[ours])
         out[f"tracks_{method}_cd_x100"] = metrics.chamfer(mine, colmap_points[theirs])["cd_x100"]
-        out[f"tracks_{method}_rms"] = float(np.sqrt(np.mean(np.sum(
-            (mine - colmap_points[theirs]) ** 2, axis=1))))
+        apart = np.linalg.norm(mine - colmap_points[theirs], axis=1)
+        out[f"tracks_{method}_rms"] = float(np.sqrt(np.mean(apart ** 2)))
+        out[f"tracks_{method}_median_x100"] = 100.0 * float(np.median(apart))
         # against the surface on the same tracks too: a track that COLMAP left out may
         # lie at any depth (two views a degree apart), which would swamp a mean
         out[f"tracks_{method}_surface_cd_x100"] = metrics.chamfer(mine, truth)["cd_x100"]
@@ -146,12 +149,13 @@ def run(config: RunConfig, streams) -> tuple[Scene, solvers.Reconstruction, np.n
              "matching": colmap.matching_for(len(names), config["images.matching"]), "warnings": []}
     cloud = np.zeros((0, 3))
     if len(sfm.registered) >= MIN_ALIGNED and len(sfm.points):
-        to_mesh = _to_mesh_frame(sfm, cameras, names)
+        to_mesh = _to_mesh_frame(sfm, cameras, names, streams["metrics"])
         cloud = _apply(to_mesh, sfm.points)
         scores.update(_scores(cloud, truth))
         scores["reprojection_px"] = sfm.reprojection_px
         scores["focal_error"] = abs(sfm.focal / cameras.focal - 1.0)
-        track_scores, notes = _track_scores(tracks, sfm, to_mesh, truth, cameras.principal_point)
+        track_scores, notes = _track_scores(tracks, sfm, to_mesh, truth, cameras.principal_point,
+                                            streams["metrics"])
         scores.update(track_scores)
         facts["warnings"] += notes
     else:

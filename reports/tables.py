@@ -110,7 +110,8 @@ def colmap(frame: pd.DataFrame, published: pd.DataFrame) -> pd.DataFrame:
 
 def colmap_tracks(frame: pd.DataFrame) -> pd.DataFrame:
     """COLMAP's feature tracks fed to mpe3d: track counts per photo count, and
-    each method's CD (x 100) against COLMAP's triangulation of the same tracks."""
+    each method's CD and median distance (x 100) to COLMAP's triangulation of
+    the same tracks, and its CD to the surface."""
     rows = []
     for count, part in frame[frame["pipeline"] == "colmap"].groupby("images.count"):
         row = {"photos": int(count), "tracks >= 2 views": _mean(part, "tracks_ge2"),
@@ -118,6 +119,7 @@ def colmap_tracks(frame: pd.DataFrame) -> pd.DataFrame:
                "triangulated by COLMAP": _mean(part, "tracks_triangulated")}
         for key, label in TRACK_METHODS.items():
             row[f"{label}: CD to COLMAP"] = _mean(part, f"tracks_{key}_cd_x100")
+            row[f"{label}: median to COLMAP"] = _mean(part, f"tracks_{key}_median_x100")
             row[f"{label}: CD to surface"] = _mean(part, f"tracks_{key}_surface_cd_x100")
             row[f"{label}: time (s)"] = _mean(part, f"tracks_{key}_s")
         rows.append(row)

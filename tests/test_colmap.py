@@ -202,3 +202,13 @@ def test_the_colmap_keys_are_checked_and_leave_older_runs_hashes_alone():
                          ({"pipeline": "nerf"}, "pipeline: 'nerf' is not one of points, colmap")]:
         with pytest.raises(MpeError, match=message):
             make_config(bad)
+
+
+def test_robust_similarity_ignores_a_minority_of_wild_pairs(rng):
+    source = rng.normal(size=(200, 3))
+    target = 3.0 * source + 1.0
+    target[:30] += rng.normal(scale=50.0, size=(30, 3))  # 15 % far out
+    s, Q, t = metrics.robust_similarity(source, target, np.random.default_rng(0))
+    assert s == pytest.approx(3.0, rel=1e-9) and np.allclose(Q, np.eye(3), atol=1e-9)
+    s_plain, _, _ = metrics.similarity_transform(source, target)
+    assert abs(s_plain - 3.0) > 0.1  # what least squares alone makes of them
