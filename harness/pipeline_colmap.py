@@ -70,11 +70,25 @@ def _scores(cloud: np.ndarray, truth: np.ndarray, prefix: str = "") -> dict[str,
     return {f"{prefix}{k}": v for k, v in out.items()}
 
 
-def _fed_to(method: str, tracks: colmap.FeatureTracks, principal_point):
+def tied_views(views: list[dict]) -> list[dict]:
+    """The largest group of ``views`` that shared tracks tie together (the
+    rule of :func:`mpe3d.solvers.degenerate.check_geometry`), as COLMAP keeps
+    its largest model: photos that no track links to the rest fix nothing."""
+    from mpe3d.solvers.degenerate import SHARED_VARIABLE, view_groups
+
+    n = 1 + max(int(v["ids"].max()) for v in views)
+    alpha = np.zeros((len(views), n), dtype=np.int32)
+    for k, view in enumerate(views):
+        alpha[k, view["ids"]] = 1
+    count, labels = view_groups(alpha @ alpha.T, SHARED_VARIABLE)
+    largest = np.argmax(np.bincount(labels))
+    return [v for v, label in zip(views, labels) if label == largest]
+
+
+def _fed_to(method: str, views: list[dict], principal_point):
     """mpe3d's cloud of COLMAP's tracks (ids = track index) by ``method``."""
     from .reconstruct import reconstruct
 
-    views = tracks.views()
     if method == "bundle":
         return reconstruct(views, camera="perspective", principal_point=tuple(principal_point))
     return reconstruct(views, objective="stress", solver=method)
@@ -92,10 +106,12 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[di
         return out, notes
     row = {int(i): r for r, i in enumerate(sfm.point_ids)}
     colmap_points = _apply(to_mesh, sfm.points)
+    views = tied_views(tracks.views())
+    out["tracks_photos_tied"] = len(views)
     for method in TRACK_METHODS:
         start = time.perf_counter()
         try:
-            result = _fed_to(method, tracks, principal_point)
+            result = _fed_to(method, views, principal_point)
         except MpeError as exc:
             notes.append(f"tracks -> {method}: {exc}")
             continue

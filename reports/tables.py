@@ -116,7 +116,8 @@ def colmap_tracks(frame: pd.DataFrame) -> pd.DataFrame:
     for count, part in frame[frame["pipeline"] == "colmap"].groupby("images.count"):
         row = {"photos": int(count), "tracks >= 2 views": _mean(part, "tracks_ge2"),
                "tracks >= 3 views": _mean(part, "tracks_ge3"),
-               "triangulated by COLMAP": _mean(part, "tracks_triangulated")}
+               "triangulated by COLMAP": _mean(part, "tracks_triangulated"),
+               "photos tied together": _mean(part, "tracks_photos_tied")}
         for key, label in TRACK_METHODS.items():
             row[f"{label}: CD to COLMAP"] = _mean(part, f"tracks_{key}_cd_x100")
             row[f"{label}: median to COLMAP"] = _mean(part, f"tracks_{key}_median_x100")

@@ -71,6 +71,12 @@ def _ids(values: np.ndarray, limit: int = 10) -> str:
     return shown + (f", ... ({len(values)} in all)" if len(values) > limit else "")
 
 
+def view_groups(shared: np.ndarray, need: int) -> tuple[int, np.ndarray]:
+    """The groups of views tied together by chains of pairs sharing ``need``
+    points or more (``shared``: K x K counts): their number and each view's label."""
+    return connected_components(csr_matrix(shared >= need), directed=False)
+
+
 def check_geometry(obs: Observations) -> np.ndarray:
     """Raise or warn on degenerate input; return the ids seen in fewer than 2 views."""
     small = [k for k, view in enumerate(obs.views) if view.size < 3]
@@ -79,8 +85,7 @@ def check_geometry(obs: Observations) -> np.ndarray:
     alpha = obs.visibility().astype(np.int32)
     shared = alpha @ alpha.T
     need = SHARED_FIXED if obs.fixed else SHARED_VARIABLE
-    graph = csr_matrix(shared >= need)
-    count, labels = connected_components(graph, directed=False)
+    count, labels = view_groups(shared, need)
     if count > 1:
         groups = [np.flatnonzero(labels == c).tolist() for c in range(count)]
         across = max(int(shared[i, j]) for i in range(obs.n_views) for j in range(obs.n_views)

@@ -212,3 +212,12 @@ def test_robust_similarity_ignores_a_minority_of_wild_pairs(rng):
     assert s == pytest.approx(3.0, rel=1e-9) and np.allclose(Q, np.eye(3), atol=1e-9)
     s_plain, _, _ = metrics.similarity_transform(source, target)
     assert abs(s_plain - 3.0) > 0.1  # what least squares alone makes of them
+
+
+def test_the_tracks_feed_mpe3d_the_largest_group_of_photos_they_tie_together():
+    from mpe3d.harness.pipeline_colmap import tied_views
+
+    views = [{"name": f"a{k}", "ids": np.arange(10), "xy": np.zeros((10, 2))} for k in range(3)]
+    views += [{"name": f"b{k}", "ids": np.arange(20, 30), "xy": np.zeros((10, 2))} for k in range(2)]
+    views.insert(1, {"name": "c", "ids": np.array([0, 1, 20, 40]), "xy": np.zeros((4, 2))})
+    assert [v["name"] for v in tied_views(views)] == ["a0", "a1", "a2"]
