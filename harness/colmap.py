@@ -448,8 +448,5 @@ def write_model_folder(folder: Path, problem, result) -> list[str]:
         notes = []
     dropped = [(d["view"], d["point"]) for d in report.get("dropped", {}).get("observations", [])]
     placed = ~np.isin(ids, np.asarray(report.get("unplaced", {}).get("ids", []), dtype=ids.dtype))
-    if folder.is_dir():
-        for stale in folder.glob("*.bin"):
-            stale.unlink()
     return notes + write_model(folder, result.points[placed], ids[placed], views, cameras, centre,
                                None, dropped)

@@ -102,11 +102,12 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[di
     notes: list[str] = []
     pairs = colmap.triangulated(tracks, sfm)
     out["tracks_triangulated"] = len(pairs)
-    if len(pairs) < MIN_ALIGNED or len(tracks.views()) < 2:
+    views = tracks.views()
+    if len(pairs) < MIN_ALIGNED or len(views) < 2:
         return out, notes
     row = {int(i): r for r, i in enumerate(sfm.point_ids)}
     colmap_points = _apply(to_mesh, sfm.points)
-    views = tied_views(tracks.views())
+    views = tied_views(views)
     out["tracks_photos_tied"] = len(views)
     for method in TRACK_METHODS:
         start = time.perf_counter()
