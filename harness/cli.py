@@ -14,7 +14,10 @@ from pathlib import Path
 # Only light modules at the top: `mpe3d --help` must not pay for numpy,
 # scikit-learn or MLflow. Each command imports what it runs.
 from .config import BACKENDS, config_from_file, describe_keys, make_config, parse_override
+from .shutdown import EXIT_CODE, Shutdown
 from ..errors import MpeError
+
+RESUME_LINE = "mpe3d: interrupted; every run logged so far is kept: run the same command to resume"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -151,7 +154,8 @@ def run_sweeps(sweeps, args, tracker, summaries: bool = True) -> tuple[list, int
                       scheduler=args.scheduler, artifacts=not args.no_artifacts,
                       rerun_failed=args.rerun_failed, force=args.force, reuse_stale=args.reuse_stale,
                       reporter=reporter, say=lambda text: _say(text, args.quiet), summaries=summaries,
-                      warn=lambda text: print(f"mpe3d: {text}", file=sys.stderr, flush=True))
+                      warn=lambda text: print(f"mpe3d: {text}", file=sys.stderr, flush=True),
+                      stop=args.shutdown)
     return plans, code
 
 
@@ -175,7 +179,11 @@ def cmd_sweep(args) -> int:
         return _dry_run(sweeps)
     from .tracking import Tracker
 
-    return run_sweeps(sweeps, args, Tracker(args.tracking_uri))[1]
+    with args.shutdown.deferred():  # a store is never left half-made, a result never half-logged
+        tracker = Tracker(args.tracking_uri)
+        if args.shutdown.stopping:
+            return EXIT_CODE
+        return run_sweeps(sweeps, args, tracker)[1]
 
 
 def _runs_table(frame, all_params: bool):
@@ -302,10 +310,10 @@ def _paper_sweep_files():
     return paper_sweeps()
 
 
-def _load_paper_sweep(path, scale="full"):
+def _load_paper_sweep(path, scale="full", overrides=()):
     from .sweep import load_sweep
 
-    return load_sweep(path, scale)
+    return load_sweep(path, scale, overrides=list(overrides))
 
 
 def _write_report(out: Path, sections, title, facts):
@@ -325,12 +333,15 @@ def cmd_reproduce(args) -> int:
 
     start = time.time()
     commit = git_commit()
-    sweeps = [_load_paper_sweep(path, args.scale) for path in _paper_sweep_files()]
-    tracker = Tracker(args.tracking_uri)
-    _say(f"reproduce-paper --scale {args.scale}: {len(sweeps)} experiments, "
-         f"{sum(len(s.runs) for s in sweeps)} runs, tracked in {tracker.uri}", args.quiet)
-    plans, code = run_sweeps(sweeps, args, tracker, summaries=False)  # the report below serves
-    if code == 130:
+    sweeps = [_load_paper_sweep(path, args.scale, args.overrides) for path in _paper_sweep_files()]
+    with args.shutdown.deferred():
+        tracker = Tracker(args.tracking_uri)
+        if args.shutdown.stopping:
+            return EXIT_CODE
+        _say(f"reproduce-paper --scale {args.scale}: {len(sweeps)} experiments, "
+             f"{sum(len(s.runs) for s in sweeps)} runs, tracked in {tracker.uri}", args.quiet)
+        plans, code = run_sweeps(sweeps, args, tracker, summaries=False)  # the report below serves
+    if code == EXIT_CODE:
         return code
     ran = sum(sum(p.counts.values()) for p in plans)
     reused = sum(p.skipped for p in plans)
@@ -441,23 +452,16 @@ def cmd_ui(args) -> int:
     print(f"MLflow UI at http://127.0.0.1:{args.port}, serving the store {uri}"
           + (f" (artifacts {root})" if root else "") + "; Ctrl-C stops it", flush=True)
     # Its own process group: the server forks workers, and a signal to us must reach them all.
+    args.shutdown.line = "mpe3d: interrupted; the MLflow UI is stopped"
     server = subprocess.Popen(command, start_new_session=True)
-
-    def stop(signum, frame):
-        raise KeyboardInterrupt
-
-    previous = {sig: signal.signal(sig, stop) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
         return server.wait()
     except KeyboardInterrupt:
         _stop_group(server)
-        return 0
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+        return EXIT_CODE
 
 
-def _stop_group(process, grace_s: float = 10.0) -> None:
+def _stop_group(process, grace_s: float = 2.0) -> None:
     """SIGTERM to ``process``'s whole group, then SIGKILL to whatever outlives ``grace_s``."""
     import subprocess
 
@@ -556,6 +560,8 @@ def build_parser() -> argparse.ArgumentParser:
                            "or tiny (a smoke test)")
     reproduce.add_argument("--out", default="paper-report", metavar="DIR",
                            help="report folder (default: paper-report)")
+    reproduce.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
+                           help="overrides for every experiment, as for sweep (e.g. repeats=1)")
     _add_run_options(reproduce)
     reproduce.set_defaults(func=cmd_reproduce)
     report = sub.add_parser("report", help="render tables and figures of tracked runs",
@@ -617,42 +623,70 @@ def build_parser() -> argparse.ArgumentParser:
     ui.set_defaults(func=cmd_ui)
     sub.add_parser("shapes", help="list the bundled and procedural shapes").set_defaults(func=cmd_shapes)
     sub.add_parser("solvers", help="list solvers and their options").set_defaults(func=cmd_solvers)
+    parser.intermixed = {"sweep": sweep, "reproduce-paper": reproduce}
     return parser
 
 
+def _parse(parser, argv: list[str]) -> argparse.Namespace:
+    """Overrides anywhere on the commands that run sweeps, as Hydra users type
+    them (``mpe3d sweep s.yaml --quiet points=70``): those commands' own
+    parsers read their options and positionals intermixed."""
+    intermixed = getattr(parser, "intermixed", {})
+    if argv and argv[0] in intermixed:
+        args = intermixed[argv[0]].parse_intermixed_args(argv[1:])
+        args.command = argv[0]
+        return args
+    return parser.parse_args(argv)
+
+
 def main(argv: list[str] | None = None) -> int:
+    """Run one command; Ctrl-C, SIGINT and SIGTERM all end it through
+    :class:`~mpe3d.harness.shutdown.Shutdown`: exit code 130 and one last line."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setLevel(logging.WARNING)  # libraries (dask) send INFO records up to the root
     handler.setFormatter(logging.Formatter("mpe3d: %(message)s"))
     logging.basicConfig(level=logging.WARNING, handlers=[handler])
+    with Shutdown() as shutdown:
+        code = _command(argv, shutdown)
+        if code == EXIT_CODE:
+            shutdown.tell()
+    return code
+
+
+def _command(argv: list[str] | None, shutdown: Shutdown) -> int:
     try:
-        args = build_parser().parse_args(argv)
+        args = _parse(build_parser(), sys.argv[1:] if argv is None else [str(a) for a in argv])
+        args.shutdown = shutdown
+        if args.command in ("sweep", "reproduce-paper"):
+            shutdown.line = RESUME_LINE
         return args.func(args)
     except MpeError as exc:
         print(f"mpe3d: error: {exc}", file=sys.stderr)
         return exc.exit_code
     except KeyboardInterrupt:
-        print("mpe3d: interrupted", file=sys.stderr)
-        return 130
+        return EXIT_CODE
     except BrokenPipeError:  # `mpe3d runs X | head`: the reader left; that is not an error
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
 
 
 def console() -> int:
-    """The ``mpe3d`` command: :func:`main`, and after an interrupt an immediate exit.
+    """The ``mpe3d`` command: :func:`main`, and after an interrupt of a
+    ``--jobs 1`` sweep an immediate exit.
 
-    A sweep stopped by Ctrl-C or SIGTERM returns while its worker thread may
-    still be inside a solver's compiled code; finalising the interpreter
-    around that thread can abort the process ("terminate called without an
-    active exception", exit -6 instead of 130, in about half of the trials).
-    Every finished run is logged or journaled by then, so the process leaves
-    without finalising.
+    Such a sweep stops while its run thread may still be inside a solver's
+    compiled code; finalising the interpreter around that thread can abort
+    the process ("terminate called without an active exception", exit -6
+    instead of 130). Every finished run is logged or journaled by then, so the
+    process leaves without finalising. Other commands finalise normally (loky
+    releases its semaphores then, so its resource tracker has nothing to warn
+    about); the shutdown watchdog bounds even that.
     """
     import threading
 
     code = main()
-    if code == 130 and threading.active_count() > 1:
+    if code == EXIT_CODE and any(t.name == "mpe3d-run" and t.is_alive()
+                                 for t in threading.enumerate()):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(code)

@@ -92,4 +92,4 @@ class Heartbeat:
 
     def __exit__(self, *exc) -> None:
         self._stop.set()
-        self._thread.join(timeout=self._interval + 30)
+        self._thread.join(timeout=5.0)  # a beat stuck on a slow store must not hold a stop up

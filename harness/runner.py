@@ -35,6 +35,7 @@ from ..errors import MpeError, StoreError
 from .execute import RunRecord, failed_record, run_record
 from .journal import Journal
 from .ownership import Heartbeat, Owner
+from .shutdown import EXIT_CODE, GRACE_S, NoShutdown, Shutdown, kill_descendants
 from .sweep import Sweep
 
 POLL_S = 2.0  # how often a sweep looks again at a claim of another sweep it waits for
@@ -80,18 +81,22 @@ class Reporter:
     def stop(self) -> None: ...
 
 
-def replay_journal(tracker, journal: Journal) -> int:
-    """Log into ``tracker`` the results dead sweeps left in ``journal``."""
+def replay_journal(tracker, journal: Journal, stop: Shutdown | None = None) -> int:
+    """Log into ``tracker`` the results dead sweeps left in ``journal``; a stop
+    request ends it between two entries (the rest wait for the next sweep)."""
+    stop = stop or NoShutdown()
     replayed = 0
     for entry in journal.orphans(tracker.uri):
         replayed += tracker.replay(entry)
         journal.remove(entry)
+        stop.check()
     journal.tidy()
     return replayed
 
 
 def plan_sweeps(sweeps: Iterable[Sweep], tracker, rerun_failed: bool = False,
-                force: bool = False, reuse_stale: bool = False) -> list[Plan]:
+                force: bool = False, reuse_stale: bool = False,
+                stop: Shutdown | None = None) -> list[Plan]:
     """Decide, per sweep, which runs still need computing.
 
     First, RUNNING runs whose sweep died are closed as KILLED (counted in the
@@ -101,9 +106,12 @@ def plan_sweeps(sweeps: Iterable[Sweep], tracker, rerun_failed: bool = False,
     best such run FAILED is skipped unless ``rerun_failed``; one FINISHED only
     by other code is computed again unless ``reuse_stale``. ``force`` reruns
     everything. Sweeps sharing an experiment never plan one config twice.
+    A stop request raises :class:`KeyboardInterrupt` between two sweeps.
     """
+    stop = stop or NoShutdown()
     plans, planned = [], {}
     for sweep in sweeps:
+        stop.check()
         experiment_id = tracker.experiment_id(sweep.name)
         plan = Plan(sweep=sweep, experiment_id=experiment_id, todo=[])
         if experiment_id not in planned:
@@ -158,6 +166,21 @@ class _ThreadPool:
     def close(self, abandon: bool) -> None:
         self._tasks.put(None)
 
+    def terminate(self) -> None:
+        """A run inside compiled code cannot be stopped from another thread: the
+        command leaves without waiting for it (``cli.console``)."""
+        self._tasks.put(None)
+
+
+def _ignore_sigint() -> None:
+    """In each worker: Ctrl-C reaches the whole process group, but only the
+    parent decides what stops (a worker cut mid-run would log a false FAILED)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _is_loky_worker(process) -> bool:
+    return any("LokyProcess" in part for part in process.cmdline())
+
 
 class _LokyPool:
     """Worker processes on this machine (joblib's loky executor)."""
@@ -167,14 +190,25 @@ class _LokyPool:
 
         workers = jobs if jobs > 0 else (os.cpu_count() or 1)
         self.capacity = 2 * workers  # one queued behind each running: no worker waits for a claim
-        self.executor = get_reusable_executor(max_workers=workers)
+        self.executor = get_reusable_executor(max_workers=workers, initializer=_ignore_sigint)
 
     def submit(self, fn, *args) -> cf.Future:
         return self.executor.submit(fn, *args)
 
     def close(self, abandon: bool) -> None:
         if abandon:
-            self.executor.shutdown(wait=False, kill_workers=True)
+            self.terminate()
+
+    def terminate(self) -> None:
+        """Stop the workers now. Terminating their processes is loky's own
+        broken-pool path (every future fails, its threads and semaphores are
+        released); ``shutdown(kill_workers=True)`` with calls still queued
+        races in loky 1.6's manager thread (KeyError, leaked semaphores)."""
+        kill_descendants(grace_s=1.0, only=_is_loky_worker)
+        closing = threading.Thread(target=self.executor.shutdown, kwargs={"wait": True},
+                                   name="mpe3d-loky-shutdown", daemon=True)
+        closing.start()
+        closing.join(3.0)
 
 
 class _DaskPool:
@@ -200,9 +234,13 @@ class _DaskPool:
         return future
 
     def close(self, abandon: bool) -> None:
-        if abandon and self._held:
+        if abandon:
+            self.terminate()
+
+    def terminate(self) -> None:
+        if self._held:
             with contextlib.suppress(Exception):
-                self.client.cancel(list(self._held.values()))
+                self.client.cancel(list(self._held.values()), force=True)
 
 
 @contextlib.contextmanager
@@ -265,21 +303,30 @@ class _Loop:
         self.open_parents = [p.parent_id for p in plans if p.parent_id]
         self.foreign_code: set[str] = set()
 
-    def run(self, heartbeat: Heartbeat) -> None:
+    def run(self, heartbeat: Heartbeat, stop: Shutdown) -> bool:
+        """Compute and log every task; False when ``stop`` was requested first
+        (then :meth:`wind_down` is next)."""
         while self.queue or self.in_flight or self.waiting:
-            self._fill()
+            self._fill(stop)
             if self.in_flight:
-                done, _ = cf.wait(self.in_flight, timeout=POLL_S, return_when=cf.FIRST_COMPLETED)
+                done, _ = cf.wait([*self.in_flight, stop.requested], timeout=POLL_S,
+                                  return_when=cf.FIRST_COMPLETED)
+                if stop.stopping:  # a failure seen now may be the interrupt's doing
+                    return False
                 for future in done:
                     self._finish(future, self.in_flight.pop(future))
             elif self.waiting:
-                time.sleep(min(POLL_S, max(0.0, min(t.next_look for t in self.waiting) - time.time())))
+                cf.wait([stop.requested], timeout=min(
+                    POLL_S, max(0.0, min(t.next_look for t in self.waiting) - time.time())))
+            if stop.stopping:
+                return False
             self._look_at_waiting()
             if heartbeat.error is not None:  # a StoreError naming the store already
                 raise heartbeat.error
+        return True
 
-    def _fill(self) -> None:
-        while self.queue and len(self.in_flight) < self.pool.capacity:
+    def _fill(self, stop: Shutdown) -> None:
+        while self.queue and len(self.in_flight) < self.pool.capacity and not stop.stopping:
             task = self.queue.popleft()
             plan, key = task.plan, task.config.hash()
             state, other = self.tracker.claim(plan.experiment_id, plan.parent_id, key,
@@ -349,6 +396,35 @@ class _Loop:
             self.open_parents.remove(plan.parent_id)
             _close(self.tracker, plan, "FINISHED")
 
+    def wind_down(self, stop: Shutdown, grace_s: float = GRACE_S) -> None:
+        """Stopped: dispatch nothing more, give running workers ``grace_s`` (none
+        after a second signal) to finish and be logged, terminate the pool,
+        then close our claims and parents as KILLED. Every run logged stays."""
+        self.queue.clear()
+        self.waiting.clear()  # claimed by other sweeps: nothing of ours to close
+        deadline = time.monotonic() + grace_s
+        while self.in_flight and not stop.hurry.is_set() and time.monotonic() < deadline:
+            done, _ = cf.wait(self.in_flight, timeout=min(0.2, deadline - time.monotonic()),
+                              return_when=cf.FIRST_COMPLETED)
+            self._keep(done)
+        self.pool.terminate()
+        self._keep([future for future in self.in_flight if future.done()])
+        abandoned = [task.run_id for task in self.in_flight.values()]
+        self.in_flight.clear()
+        self.interrupted(abandoned)
+
+    def _keep(self, done) -> None:
+        """Log what completed; a future that failed while stopping was cut short
+        by the stop itself and stays in flight, to be closed as KILLED."""
+        for future in done:
+            if future.cancelled() or future.exception() is not None:
+                continue
+            task = self.in_flight.pop(future)
+            try:
+                self._finish(future, task)
+            except StoreError:  # journaled first: the next sweep replays it
+                pass
+
     def drain(self, error: StoreError) -> StoreError:
         """The store failed: keep in the journal what finishes within DRAIN_S."""
         deadline = time.monotonic() + DRAIN_S
@@ -359,17 +435,16 @@ class _Loop:
                 task = self.in_flight.pop(future)
                 self.journal.write(self._record(future, task), self._meta(task))
         abandoned = len(self.in_flight)
-        self.pool.close(abandon=True)
+        self.pool.terminate()
         kept = self.journal.pending(self.tracker.uri)
         return StoreError(f"{error.message}; stopped: {kept} computed result(s) wait in "
                           f"{self.journal.folder} and go into the store at the next run of this "
                           f"command; {abandoned} run(s) in flight abandoned")
 
-    def interrupted(self) -> None:
-        """Ctrl-C or kill: close our claims and parents; every logged run stays."""
-        self.pool.close(abandon=True)
+    def interrupted(self, abandoned: list[str]) -> None:
+        """Close the ``abandoned`` claims and our open parents as KILLED."""
         with contextlib.suppress(Exception):
-            self.tracker.kill([t.run_id for t in self.in_flight.values()], "the sweep was interrupted")
+            self.tracker.kill(abandoned, "the sweep was interrupted")
         for plan in self.plans:
             if plan.parent_id in self.open_parents:
                 with contextlib.suppress(Exception):
@@ -378,13 +453,15 @@ class _Loop:
 
 def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "loky",
               scheduler: str | None = None, artifacts: bool = True,
-              reporter: Reporter | None = None, journal: Journal | None = None) -> list[Plan]:
+              reporter: Reporter | None = None, journal: Journal | None = None,
+              stop: Shutdown | None = None) -> list[Plan]:
     """Compute every planned run and log each result as it arrives; returns
     ``plans`` with their counts and failures filled in.
 
     Each sweep with work to do gets a parent run; its children are nested
-    under it. On an interrupt the open claims and parents are closed as
-    KILLED and the interrupt propagates. On a store failure the loop stops
+    under it. When ``stop`` is requested (or on a KeyboardInterrupt) the
+    loop winds down (:meth:`_Loop.wind_down`) and raises KeyboardInterrupt.
+    On a store failure the loop stops
     within ``DRAIN_S`` seconds, keeps what it computed in the journal and
     raises :class:`StoreError`.
     """
@@ -392,6 +469,7 @@ def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "lok
         raise MpeError(f"--backend: unknown backend '{backend}' (use {' or '.join(BACKENDS)})")
     reporter = reporter or Reporter()
     journal = journal or Journal()
+    stop = stop or NoShutdown()
     owner = Owner.current()
     for plan in plans:
         if plan.todo:
@@ -404,12 +482,15 @@ def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "lok
             loop = _Loop(plans, tracker, pool, journal, artifacts, reporter)
             with Heartbeat(lambda: tracker.heartbeat(list(loop.open_parents))) as heartbeat:
                 try:
-                    loop.run(heartbeat)
+                    completed = loop.run(heartbeat, stop)
                 except StoreError as exc:
                     raise loop.drain(exc) from None
-                except BaseException:
-                    loop.interrupted()
+                except BaseException:  # a library caller's Ctrl-C: no grace
+                    loop.wind_down(stop, grace_s=0.0)
                     raise
+                if not completed:
+                    loop.wind_down(stop)
+                    raise KeyboardInterrupt
     finally:
         reporter.stop()
     journal.tidy()
@@ -448,10 +529,6 @@ def _outcome(plan: Plan) -> str:
     return text
 
 
-def _interrupt(signum, frame):
-    raise KeyboardInterrupt
-
-
 def _quiet(text: str) -> None:
     pass
 
@@ -459,24 +536,50 @@ def _quiet(text: str) -> None:
 def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "loky",
                scheduler: str | None = None, artifacts: bool = True, rerun_failed: bool = False,
                force: bool = False, reuse_stale: bool = False, reporter: Reporter | None = None,
-               say=_quiet, warn=_quiet, summaries: bool = True) -> tuple[list[Plan], int]:
+               say=_quiet, warn=_quiet, summaries: bool = True,
+               stop: Shutdown | None = None) -> tuple[list[Plan], int]:
     """Replay the journal, plan ``sweeps`` against ``tracker``, run what is
     missing and summarise; ``say`` and ``warn`` receive the lines to show.
 
     Returns the plans and the exit code: 0, 1 when a run failed, 130 when
-    interrupted (Ctrl-C or SIGTERM; every run logged so far is kept). A store
+    stopped (``stop`` requested, or a KeyboardInterrupt; every run logged so
+    far is kept, and the caller says so). A store
     failure raises :class:`StoreError` (exit 3) after the computed results are
     journaled. With ``artifacts`` and ``summaries``, each parent run also gets
     its sweep's summary table and figures (``reproduce-paper`` logs its own
     report's sections instead, drawn once).
     """
+    stop = stop or NoShutdown()
+    plans: list[Plan] = []
+    try:
+        plans = _plan(sweeps, tracker, stop, say, rerun_failed=rerun_failed, force=force,
+                      reuse_stale=reuse_stale)
+        if not any(plan.todo for plan in plans):
+            return plans, 0
+        start = time.time()
+        run_plans(plans, tracker, jobs=jobs, backend=backend, scheduler=scheduler,
+                  artifacts=artifacts, reporter=reporter, stop=stop)
+        if artifacts and summaries:
+            for plan in plans:
+                if plan.parent_id:
+                    stop.check()
+                    _log_summary(tracker, plan, warn)
+    except KeyboardInterrupt:
+        return plans, EXIT_CODE
+    _say_outcomes(plans, say, warn)
+    say(f"{time.time() - start:.1f} s; tracked in {tracker.uri} "
+        f"(`mpe3d runs NAME` prints a table, `mpe3d ui` opens the MLflow UI)")
+    return plans, 1 if any(plan.failures for plan in plans) else 0
+
+
+def _plan(sweeps, tracker, stop: Shutdown, say, **how) -> list[Plan]:
+    """Replay what dead sweeps left in the journal, then plan ``sweeps``."""
     journal = Journal()
-    replayed = replay_journal(tracker, journal)
+    replayed = replay_journal(tracker, journal, stop)
     if replayed:
         say(f"replayed {replayed} result(s) from {journal.folder} into {tracker.uri}: an earlier "
             "sweep computed them but could not log them")
-    plans = plan_sweeps(sweeps, tracker, rerun_failed=rerun_failed, force=force,
-                        reuse_stale=reuse_stale)
+    plans = plan_sweeps(sweeps, tracker, stop=stop, **how)
     zombies = sum(plan.zombies for plan in plans)
     if zombies:
         say(f"closed {zombies} run(s) left RUNNING by sweeps that died, as KILLED; "
@@ -484,22 +587,11 @@ def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "
     for plan in plans:
         if not plan.todo:
             say(_nothing_to_do(plan, tracker.uri))
-    if not any(plan.todo for plan in plans):
-        return plans, 0
-    start = time.time()
-    previous = signal.signal(signal.SIGTERM, _interrupt)  # `kill` stops as cleanly as Ctrl-C
-    try:
-        run_plans(plans, tracker, jobs=jobs, backend=backend, scheduler=scheduler,
-                  artifacts=artifacts, reporter=reporter, journal=journal)
-        if artifacts and summaries:
-            for plan in plans:
-                if plan.parent_id:
-                    _log_summary(tracker, plan, warn)
-    except KeyboardInterrupt:
-        warn("interrupted; every run logged so far is kept: run the same command to resume")
-        return plans, 130
-    finally:
-        signal.signal(signal.SIGTERM, previous)
+    stop.check()
+    return plans
+
+
+def _say_outcomes(plans: list[Plan], say, warn) -> None:
     for plan in plans:
         if plan.todo:
             say(_outcome(plan))
@@ -508,9 +600,6 @@ def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "
         if len(plan.failures) > 5:
             warn(f"... and {len(plan.failures) - 5} more failed runs "
                  f"(`mpe3d runs '{plan.sweep.name}'` lists them)")
-    say(f"{time.time() - start:.1f} s; tracked in {tracker.uri} "
-        f"(`mpe3d runs NAME` prints a table, `mpe3d ui` opens the MLflow UI)")
-    return plans, 1 if any(plan.failures for plan in plans) else 0
 
 
 def _log_summary(tracker, plan: Plan, warn) -> None:
