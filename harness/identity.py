@@ -2,27 +2,33 @@
 
 A tracked run is only as good as the code that made it, so every run records
 ``code_identity()``: the package version and a fingerprint of the modules that
-can change a run's numbers (scene, views, visibility, noise, observation,
-metrics, every solver) and of the bundled meshes. Resume reuses a run only
-when its identity matches the running code's.
+can change a run's numbers, and of the bundled meshes. Resume reuses a run
+only when its identity matches the running code's.
+
+Which modules count is read from the package tree, never from a list: every
+module of ``mpe3d.solvers`` (subpackages included), and every ``mpe3d``
+module that the run entry point (:data:`RUN_ENTRY`) imports, directly or
+through others, at the top or inside a function, with the packages that hold
+them. A module added, moved or split on a run's path is covered without
+editing anything; the command line, tracking, sweeps and reports are not on
+that path and are not part of it.
 
 The fingerprint is taken over each module's syntax tree with docstrings
-dropped, so comments, docstrings and formatting do not change it; the command
-line, tracking, sweeps and reports are not part of it at all.
+dropped, so comments, docstrings and formatting do not change it.
 """
 
 from __future__ import annotations
 
 import ast
 import hashlib
+import importlib.util
 import subprocess
 from functools import lru_cache
 from pathlib import Path
 
-# The harness modules on the path from a config to its metrics; every module
-# of ``solvers`` counts too, so a new solver is covered without a list to edit.
-NUMERIC_MODULES = ("colmap", "execute", "metrics", "noise", "observe", "photos", "pipeline_colmap",
-                   "shapes", "views", "visibility")
+PACKAGE = "mpe3d"
+RUN_ENTRY = "mpe3d.harness.execute"  # where a worker starts a run: every pipeline is below it
+SOLVERS = "mpe3d.solvers"
 _IGNORED_FIELDS = {"ctx", "type_comment", "kind"}
 
 
@@ -58,12 +64,66 @@ def source_fingerprint(source: str) -> str:
     return hashlib.sha256(_canonical(tree).encode()).hexdigest()
 
 
+def _module_file(name: str) -> Path | None:
+    """Where module ``name`` of this package lives (its ``__init__.py`` for a package)."""
+    try:
+        spec = importlib.util.find_spec(name)
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.origin or not spec.origin.endswith(".py"):
+        return None
+    return Path(spec.origin)
+
+
+def _imported(name: str, path: Path) -> set[str]:
+    """The ``mpe3d`` modules that module ``name`` imports anywhere in its code
+    (a name imported from a package counts when it is a module itself)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                root = ".".join(parts[:len(parts) - node.level + 1])
+                base = f"{root}.{base}" if base else root
+            found.add(base)
+            found |= {f"{base}.{alias.name}" for alias in node.names}
+    return {m for m in found if m.split(".")[0] == PACKAGE and _module_file(m)}
+
+
+def _with_packages(names: set[str]) -> set[str]:
+    """Importing ``a.b.c`` runs ``a`` and ``a.b`` first: they count too."""
+    return names | {".".join(n.split(".")[:i]) for n in names for i in range(1, n.count(".") + 1)}
+
+
+def _solver_modules() -> set[str]:
+    root = _module_file(SOLVERS).parent
+    return {SOLVERS + "".join("." + part for part in p.relative_to(root).with_suffix("").parts
+                              if part != "__init__")
+            for p in root.rglob("*.py")}
+
+
+@lru_cache(maxsize=1)
+def fingerprinted_modules() -> frozenset[str]:
+    """Every module whose code is in :func:`code_fingerprint`: the solvers, and
+    the closure of :data:`RUN_ENTRY`'s imports inside the package."""
+    todo, seen = [RUN_ENTRY, *_solver_modules()], set()
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        todo.extend(_imported(name, _module_file(name)) - seen)
+    return frozenset(_with_packages(seen))
+
+
 def _numeric_files() -> list[tuple[str, Path]]:
-    harness = Path(__file__).resolve().parent
-    solvers = harness.parent / "solvers"
-    files = [(f"harness/{name}.py", harness / f"{name}.py") for name in NUMERIC_MODULES]
-    files += [(f"solvers/{p.name}", p) for p in sorted(solvers.glob("*.py"))]
-    files += [(f"meshes/{p.name}", p) for p in sorted((harness / "assets" / "meshes").glob("*.ply"))]
+    files = [(name, _module_file(name)) for name in sorted(fingerprinted_modules())]
+    meshes = _module_file("mpe3d.harness").parent / "assets" / "meshes"
+    files += [(f"meshes/{p.name}", p) for p in sorted(meshes.glob("*.ply"))]
     return files
 
 

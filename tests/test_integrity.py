@@ -62,6 +62,56 @@ def test_fingerprint_sees_code_not_comments_docstrings_or_layout():
     assert source_fingerprint(CODE.replace("x * 2", "2 * x")) != base
 
 
+RUN_BOTH_PIPELINES = """
+import json, sys
+from mpe3d.harness.config import make_config
+from mpe3d.harness.execute import run_record
+for keys in ({"shape": "torus", "points": 64, "views": 3, "solver": "refine"},
+             {"pipeline": "colmap", "shape": "chair", "points": 256, "images.count": 10,
+              "images.size": 240, "solver": "refine"}):
+    record = run_record(make_config(keys), False)
+    assert record.status == "FINISHED", record.error
+from mpe3d.harness.identity import fingerprinted_modules
+print(json.dumps({"loaded": sorted(m for m in sys.modules if m.split(".")[0] == "mpe3d"),
+                  "fingerprinted": sorted(fingerprinted_modules())}))
+"""
+
+
+def test_every_module_a_run_loads_is_in_the_code_identity():
+    """One run of each pipeline, in a fresh process as a worker runs it."""
+    out = subprocess.run([sys.executable, "-c", RUN_BOTH_PIPELINES], capture_output=True,
+                         text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    seen = json.loads(out.stdout.splitlines()[-1])
+    assert "mpe3d.harness.reconstruct" in seen["loaded"]  # the colmap pipeline did run
+    assert set(seen["loaded"]) <= set(seen["fingerprinted"]), \
+        set(seen["loaded"]) - set(seen["fingerprinted"])
+    for away in ("mpe3d.harness.cli", "mpe3d.harness.tracking", "mpe3d.reports", "mpe3d.sweeps"):
+        assert away not in seen["fingerprinted"]
+
+
+def test_editing_a_module_on_a_runs_path_changes_the_code_identity(tmp_path, monkeypatch):
+    from mpe3d.harness import identity
+
+    before = identity.code_identity()
+    for name, edit in (("mpe3d.harness.reconstruct", "\nEDITED = 1\n"),
+                       ("mpe3d.harness.formats", "\nEDITED = 1\n"),
+                       ("mpe3d.harness.cli", None)):  # not on a run's path: no change
+        original = identity._module_file(name)
+        copy = tmp_path / original.name
+        copy.write_text(original.read_text() + (edit or "\ndef extra():\n    return 1\n"))
+        monkeypatch.setattr(identity, "_module_file",
+                            lambda m, name=name, copy=copy, find=identity._module_file:
+                            copy if m == name else find(m))
+        for cached in (identity.fingerprinted_modules, identity.code_fingerprint, identity.code_identity):
+            cached.cache_clear()
+        assert (identity.code_identity() != before) == (edit is not None), name
+        monkeypatch.undo()
+        for cached in (identity.fingerprinted_modules, identity.code_fingerprint, identity.code_identity):
+            cached.cache_clear()
+    assert identity.code_identity() == before
+
+
 def copy_checkout(target: Path) -> Path:
     """The project's files (committed or not, never build leftovers) in ``target``."""
     listed = subprocess.run(["git", "ls-files", "-z", "--cached", "--others", "--exclude-standard"],
