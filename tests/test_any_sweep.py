@@ -28,8 +28,9 @@ def mixed(tmp_path_factory):
     path.write_text(MIXED)
     uri = f"sqlite:///{folder}/mlflow.db"
     # points=48 and a grid axis over views, from the command line.
-    ran = run_cli("sweep", str(path), "points=48", "grid.views=[3, 4]", "--jobs", "2",
-                  "--tracking-uri", uri, cwd=folder)
+    # Overrides anywhere among the options, as Hydra users type them.
+    ran = run_cli("sweep", str(path), "--jobs", "2", "points=48", "--tracking-uri", uri,
+                  "grid.views=[3, 4]", cwd=folder)
     assert ran.returncode == 0, ran.stderr
     report = run_cli("report", "--sweep", str(path), "points=48", "grid.views=[3, 4]", "--out", "rep",
                      "--tracking-uri", uri, cwd=folder)
@@ -52,6 +53,23 @@ def test_overrides_hash_as_if_written_in_the_file(tmp_path, capsys):
         assert main(["sweep", str(path), bad, "--dry-run"]) == 2
         err = capsys.readouterr().err
         assert message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_overrides_go_anywhere_on_sweep_and_reproduce_paper(tmp_path, capsys):
+    path = tmp_path / "mixed.yaml"
+    path.write_text(MIXED)
+    assert main(["sweep", str(path), "--quiet", "points=70", "--dry-run"]) == 0
+    out = capsys.readouterr().out
+    assert "4 runs in all" in out
+    assert {c.flat()["points"] for c in load_sweep(path, overrides=["points=70"]).runs} == {70}
+    assert main(["sweep", "--dry-run", str(path), "--scale", "full", "grid.views=[3, 4]"]) == 0
+    assert "8 runs in all" in capsys.readouterr().out
+    # reproduce-paper checks its overrides on every experiment before any store is opened.
+    assert main(["reproduce-paper", "--scale", "tiny", "pionts=3", "--quiet",
+                 "--tracking-uri", f"sqlite:///{tmp_path}/never.db"]) == 2
+    err = capsys.readouterr().err
+    assert "unknown key 'pionts'" in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "never.db").exists()
 
 
 def test_a_mixed_solver_report_has_a_row_per_setting_and_solver_and_its_figures(mixed):
