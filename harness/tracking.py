@@ -154,9 +154,10 @@ def _open_sqlite(uri: str, database: Path):
     """
     from mlflow.tracking import MlflowClient
 
+    lock = database.with_name(database.name + ".lock")
+    made = _not_yet(database, lock)
     try:
         database.parent.mkdir(parents=True, exist_ok=True)
-        lock = database.with_name(database.name + ".lock")
         with _file_lock(lock):
             new = not database.exists() or database.stat().st_size == 0
             if new:
@@ -166,9 +167,32 @@ def _open_sqlite(uri: str, database: Path):
                     connection.execute("PRAGMA journal_mode=WAL")
             client = MlflowClient(tracking_uri=uri)
             client.search_experiments(max_results=1)  # creates the tables, now, under the lock
-    except OSError as exc:
-        raise StoreError(f"tracking store {uri}: cannot open it: {exc.strerror or exc}") from None
+    except BaseException as exc:
+        _remove(made)  # a failed opening leaves the user's folder as it was
+        if isinstance(exc, OSError):
+            raise StoreError(f"tracking store {uri}: cannot open it: {exc.strerror or exc}") from None
+        raise
     return client
+
+
+def _not_yet(database: Path, lock: Path) -> list[Path]:
+    """What opening ``database`` may create that is not there yet, deepest first:
+    the store and its SQLite side files, the lock, the folders above them."""
+    side = [database.with_name(database.name + suffix) for suffix in ("-wal", "-shm", "-journal")]
+    folders, folder = [], database.parent
+    while not folder.exists():
+        folders.append(folder)
+        folder = folder.parent
+    return [p for p in (database, *side, lock) if not p.exists()] + folders
+
+
+def _remove(paths: list[Path]) -> None:
+    for path in paths:
+        with contextlib.suppress(OSError):
+            if path.is_dir():
+                path.rmdir()  # only when empty: nothing of the user's goes
+            else:
+                path.unlink(missing_ok=True)
 
 
 @dataclass

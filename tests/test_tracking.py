@@ -310,3 +310,27 @@ def test_sweep_on_an_existing_dask_scheduler(tmp_path):
     assert len(kids) == 2 and {r.info.status for r in kids} == {"FINISHED"}
     ran_on = {int(r.data.tags["mpe3d.worker"].rsplit(":", 1)[1]) for r in kids}
     assert ran_on <= worker_pids  # the cluster's workers did the work, not the CLI
+
+
+def test_a_failed_store_opening_leaves_no_litter(tmp_path, capsys, monkeypatch):
+    path = tmp_path / "s.yaml"
+    path.write_text("name: s\nbase: {shape: torus, points: 48, solver: baseline}\n")
+    (tmp_path / "notadb.db").write_text("these are my notes, not a database\n")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    code = main(["sweep", str(path), "--quiet", "--tracking-uri", f"sqlite:///{tmp_path}/notadb.db"])
+    err = capsys.readouterr().err
+    assert code == 3 and len(err.strip().splitlines()) == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # no notadb.db.lock
+    assert (tmp_path / "notadb.db").read_text().startswith("these are my notes")
+    # A store that fails after its folders and file were made takes them away again.
+    from mlflow.tracking import MlflowClient
+
+    from mpe3d.errors import StoreError
+    from mpe3d.harness.tracking import Tracker
+
+    def refuse(self, *args, **kwargs):
+        raise RuntimeError("the disk said no")
+    monkeypatch.setattr(MlflowClient, "search_experiments", refuse)
+    with pytest.raises(StoreError, match="the disk said no"):
+        Tracker(f"sqlite:///{tmp_path}/new/deeper/t.db")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
