@@ -186,18 +186,83 @@ def cmd_sweep(args) -> int:
         return run_sweeps(sweeps, args, tracker)[1]
 
 
-def _runs_table(frame, all_params: bool):
+RUNS_METRICS = ("cd_x100", "emd_x100", "roa", "runtime_s")  # the paper's, and the time
+ERROR_WIDTH = 60  # a Markdown table's error column is cut here; csv and json keep it whole
+
+
+def _runs_table(frame, all_columns: bool):
+    """What `mpe3d runs` shows: by default the config keys that vary within the
+    experiment (a solver option only if it varies within one solver), status,
+    the main metrics and the code; with ``all_columns`` every param, metric and tag."""
+    from mpe3d.reports.load import varying_columns
+
     from .config import KEYS
-    from .execute import METRIC_KEYS
 
     params = [c for c in frame.columns if c in KEYS or c.startswith("solver.")]
-    shown = params if all_params else [c for c in params if frame[c].nunique(dropna=False) > 1]
-    metrics = [c for c in (*METRIC_KEYS, "wall_s") if c in frame.columns]
+    shown = params if all_columns else list(varying_columns(frame[params]))
+    if all_columns:
+        metrics = sorted(c for c in frame.columns if c not in params and c not in (
+            "status", "config_hash", "code", "error", "start_time", "run_id"))
+    else:
+        metrics = [c for c in RUNS_METRICS if c in frame.columns]
     table = frame.sort_values(shown + ["start_time"]) if shown else frame.sort_values("start_time")
-    columns = ["status", *shown, *metrics, "config_hash", "code"]
-    if (table["status"] != "FINISHED").any():
+    columns = ["status", *shown, *metrics, *(["config_hash"] if all_columns else []), "code"]
+    if all_columns:
+        columns += ["run_id", "start_time"]
+    if all_columns or (table["status"] != "FINISHED").any():
         columns.append("error")
-    return table[columns]
+    table = table[columns]
+    return table if all_columns else table.rename(columns={"solver.name": "solver"})
+
+
+def _print_runs(table, form: str) -> None:
+    """``text``: aligned columns for a terminal; ``md``: a Markdown table;
+    ``csv`` and ``json`` (one record per run): every digit, for a file or pandas."""
+    if form == "csv":
+        print(table.to_csv(index=False), end="")
+        return
+    if form == "json":
+        print(table.to_json(orient="records", date_format="iso", double_precision=15))
+        return
+    if form == "md":
+        print(_cut_errors(table, ERROR_WIDTH).to_markdown(index=False, floatfmt=".4g", missingval=""))
+        return
+
+    import shutil
+
+    width = shutil.get_terminal_size((120, 24)).columns - 1
+    errors = table.pop("error") if "error" in table else None
+    print(_fit(table, width))
+    if errors is not None:  # under the table, one line each, as wide as the terminal
+        keys = [c for c in table.columns if c not in ("status", *RUNS_METRICS, "code")]
+        for (_, row), error in zip(table.iterrows(), errors):
+            if error:
+                label = " ".join(f"{k}={row[k]}" for k in keys)
+                print(_cut(f"{row['status']} {label}: {error}", width))
+
+
+def _fit(table, width: int) -> str:
+    """The table as aligned text; when it is wider than ``width``, nested keys
+    are headed by their last part (``noise.amplitude`` as ``amplitude``)
+    wherever that part names one column only."""
+    def text(frame) -> str:
+        return frame.to_string(index=False, na_rep="", float_format=lambda v: f"{v:.3g}")
+    out = text(table)
+    if max(map(len, out.splitlines())) <= width:
+        return out
+    last = [c.rsplit(".", 1)[-1] for c in table.columns]
+    short = {c: part for c, part in zip(table.columns, last) if last.count(part) == 1}
+    return text(table.rename(columns=short))
+
+
+def _cut_errors(table, width: int):
+    if "error" not in table:
+        return table
+    return table.assign(error=[_cut(str(e), width) for e in table["error"].fillna("")])
+
+
+def _cut(text: str, width: int) -> str:
+    return text if len(text) <= width else text[:width - 1] + "…"
 
 
 def _note_journal(tracker) -> None:
@@ -220,15 +285,11 @@ def cmd_runs(args) -> int:
     if frame.empty:
         print(f"mpe3d: experiment '{args.experiment}' has no runs yet", file=sys.stderr)
         return 0
-    table = _runs_table(frame, args.all)
     codes = frame["code"].unique()
     if len(codes) > 1:
         print(f"mpe3d: note: these runs were computed by {len(codes)} versions of the code "
               f"(column code); this code is {tracker.code}", file=sys.stderr)
-    if args.format == "csv":
-        print(table.to_csv(index=False), end="")
-    else:
-        print(table.to_markdown(index=False, floatfmt=".4g", missingval=""))
+    _print_runs(_runs_table(frame, args.all_columns), args.format)
     return 0
 
 
@@ -579,9 +640,12 @@ def build_parser() -> argparse.ArgumentParser:
     report.set_defaults(func=cmd_report)
     runs = sub.add_parser("runs", help="print the runs of an experiment as a table")
     runs.add_argument("experiment", metavar="EXPERIMENT", help="the experiment: a sweep's name")
-    runs.add_argument("--format", choices=("md", "csv"), default="md",
-                      help="md: a Markdown table (default); csv: for a file or pandas")
-    runs.add_argument("--all", action="store_true", help="show every param, not only those that vary")
+    runs.add_argument("--format", choices=("text", "md", "csv", "json"), default="text",
+                      help="text: aligned columns (default); md: a Markdown table; csv or json "
+                      "(records, every digit): for a file or pandas")
+    runs.add_argument("--all-columns", action="store_true",
+                      help="every param, metric and tag (default: the keys that vary, status, "
+                      "cd_x100, emd_x100, roa, runtime_s and code)")
     runs.add_argument("--history", action="store_true",
                       help="every run ever made, not only the latest of each config")
     runs.add_argument("--tracking-uri", metavar="URI", help=TRACKING_HELP)

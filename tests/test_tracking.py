@@ -1,6 +1,7 @@
 """Sweeps end to end: real joblib workers, a real SQLite MLflow store, a real
 ``mlflow server`` and a real dask cluster on 127.0.0.1."""
 import io
+import json
 import os
 import signal
 import socket
@@ -124,12 +125,19 @@ def test_runs_table_prints_numbers_from_the_store(tracked, capsys, monkeypatch):
     code, out, err = cli(capsys, "runs", "tiny", "--format", "csv")
     assert code == 0, err
     table = pd.read_csv(io.StringIO(out))
-    assert len(table) == 8 and {"views", "projections", "seed", "cd", "roa"} <= set(table.columns)
-    assert "points" not in table.columns  # constant params only with --all
+    assert len(table) == 8 and {"views", "projections", "seed", "cd_x100", "roa", "runtime_s",
+                                 "code"} == set(table.columns) - {"status", "emd_x100"}
+    code, out, err = cli(capsys, "runs", "tiny", "--all-columns", "--format", "json")
+    every = pd.DataFrame(json.loads(out))
+    assert len(every) == 8 and {"points", "cd", "stress", "config_hash", "run_id"} <= set(every.columns)
     by_hash = {r.data.tags["mpe3d.config_hash"]: r.data.metrics for r in kids}
-    for _, row in table.iterrows():
+    for _, row in every.iterrows():
         assert row["cd"] == pytest.approx(by_hash[row["config_hash"]]["cd"], rel=1e-12)
+        assert row["cd_x100"] == table.set_index(["views", "projections", "seed"]).loc[
+            (row["views"], row["projections"], row["seed"]), "cd_x100"]
     code, out, _ = cli(capsys, "runs", "tiny")
+    assert code == 0 and out.count("FINISHED") == 8 and out.split()[:2] == ["status", "views"]
+    code, out, _ = cli(capsys, "runs", "tiny", "--format", "md")
     assert code == 0 and out.count("| FINISHED") == 8
     code, _, err = cli(capsys, "runs", "tnyi")
     assert code == 2 and "no experiment 'tnyi'" in err and "did you mean 'tiny'" in err
@@ -138,7 +146,7 @@ def test_runs_table_prints_numbers_from_the_store(tracked, capsys, monkeypatch):
     from .helpers import mpe3d_command
     piped = subprocess.run(f"{' '.join(mpe3d_command())} runs tiny | head -1", shell=True,
                            cwd=folder, capture_output=True, text=True, timeout=120)
-    assert piped.stdout.startswith("| status") and "Traceback" not in piped.stderr
+    assert piped.stdout.split()[0] == "status" and "Traceback" not in piped.stderr
 
 
 def test_a_raising_run_is_failed_and_the_others_finish(tmp_path, capsys):
@@ -334,3 +342,32 @@ def test_a_failed_store_opening_leaves_no_litter(tmp_path, capsys, monkeypatch):
     with pytest.raises(StoreError, match="the disk said no"):
         Tracker(f"sqlite:///{tmp_path}/new/deeper/t.db")
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_runs_of_the_papers_full_sweeps_fit_a_120_column_terminal(monkeypatch):
+    """Every config of each paper sweep at full scale, with metrics as wide as
+    they print (an exact solver's 1e-14, a slow run's seconds), and a failure."""
+    from mpe3d.harness.cli import _print_runs, _runs_table
+    from mpe3d.harness.sweep import load_sweep
+    from mpe3d.sweeps import paper_sweeps
+
+    monkeypatch.setenv("COLUMNS", "120")
+    rng = np.random.default_rng(0)
+    for path in paper_sweeps():
+        sweep = load_sweep(path)
+        frame = pd.DataFrame([c.flat() for c in sweep.runs])
+        n = len(frame)
+        frame = frame.assign(status="FINISHED", config_hash=[c.hash() for c in sweep.runs],
+                             code="0.1.0/5b9ceada2ba6", error="", run_id="x",
+                             start_time=pd.Timestamp("2026-12-03"),
+                             cd_x100=10.0 ** rng.uniform(-15, 2, n), emd_x100=10.0 ** rng.uniform(-15, 2, n),
+                             roa=10.0 ** rng.uniform(-17, 0, n), runtime_s=10.0 ** rng.uniform(-4, 3, n))
+        frame.loc[0, ["status", "error"]] = ["FAILED", "MpeError: " + "a long reason " * 20]
+        buffer = io.StringIO()
+        from contextlib import redirect_stdout
+        with redirect_stdout(buffer):
+            _print_runs(_runs_table(frame, all_columns=False), "text")
+        lines = buffer.getvalue().splitlines()
+        assert max(map(len, lines)) <= 120, (sweep.name, lines[0])
+        assert lines[-1].startswith("FAILED ") and "MpeError: a long reason" in lines[-1]
+        assert len(lines) == len(frame) + 2  # the header, a row per run, the failure below
