@@ -237,7 +237,7 @@ def _print_runs(table, form: str) -> None:
         keys = [c for c in table.columns if c not in ("status", *RUNS_METRICS, "code")]
         for (_, row), error in zip(table.iterrows(), errors):
             if error:
-                label = " ".join(f"{k}={row[k]}" for k in keys)
+                label = " ".join(str(row[k]) for k in keys)  # as in the table's columns
                 print(_cut(f"{row['status']} {label}: {error}", width))
 
 
