@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -703,14 +704,15 @@ def _parse(parser, argv: list[str]) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def main(argv: list[str] | None = None) -> int:
+def main(argv: list[str] | None = None, shutdown: Shutdown | None = None) -> int:
     """Run one command; Ctrl-C, SIGINT and SIGTERM all end it through
-    :class:`~mpe3d.harness.shutdown.Shutdown`: exit code 130 and one last line."""
+    :class:`~mpe3d.harness.shutdown.Shutdown`: exit code 130 and one last line.
+    Without ``shutdown`` the handlers are installed for the command only."""
     handler = logging.StreamHandler(sys.stderr)
     handler.setLevel(logging.WARNING)  # libraries (dask) send INFO records up to the root
     handler.setFormatter(logging.Formatter("mpe3d: %(message)s"))
     logging.basicConfig(level=logging.WARNING, handlers=[handler])
-    with Shutdown() as shutdown:
+    with (contextlib.nullcontext(shutdown) if shutdown else Shutdown()) as shutdown:
         code = _command(argv, shutdown)
         if code == EXIT_CODE:
             shutdown.tell()
@@ -744,11 +746,14 @@ def console() -> int:
     instead of 130). Every finished run is logged or journaled by then, so the
     process leaves without finalising. Other commands finalise normally (loky
     releases its semaphores then, so its resource tracker has nothing to warn
-    about); the shutdown watchdog bounds even that.
+    about); the shutdown watchdog bounds even that, and a signal that comes
+    while the process finalises ends it at once with 130 and the line.
     """
     import threading
 
-    code = main()
+    shutdown = Shutdown().__enter__()  # for the life of the process, finalisation included
+    code = main(shutdown=shutdown)
+    shutdown.finishing = True
     if code == EXIT_CODE and any(t.name == "mpe3d-run" and t.is_alive()
                                  for t in threading.enumerate()):
         sys.stdout.flush()

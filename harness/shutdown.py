@@ -15,7 +15,9 @@ the bound hold whatever the main thread is doing:
 - a second signal sets :attr:`Shutdown.hurry`: running workers get no more grace;
 - ``deadline_s`` after the first signal, whatever still runs is the watchdog's:
   it terminates every descendant process, prints the command's line unless it
-  was printed, and leaves with exit code 130 without finalising the interpreter.
+  was printed, and leaves with exit code 130 without finalising the interpreter;
+- once the command is over (:attr:`Shutdown.finishing`), a signal ends the
+  process at once, with 130 and the line (its work is all done and kept).
 
 Sections that must not be cut halfway (creating a store, logging a result,
 closing claims) run deferred: a signal there only sets the flags, and the
@@ -49,6 +51,7 @@ class Shutdown:
         self.hurry = threading.Event()  # a second signal: no more grace
         self.line = LINE  # what a user reads last; a command sets its own
         self.signals = 0
+        self.finishing = False  # the command is over: a signal now only ends the process
         self._deferred = 0
         self._told = threading.Lock()
         self._said = False
@@ -84,7 +87,7 @@ class Shutdown:
 
     def _on_signal(self, signum, frame) -> None:
         """The main thread's handler: the watcher did the bookkeeping."""
-        if self._deferred == 0 and not self._raised:
+        if self._deferred == 0 and not self._raised and not self.finishing:
             self._raised = True  # once: a second Ctrl-C must not cut the first one's cleanup
             raise KeyboardInterrupt
 
@@ -101,6 +104,9 @@ class Shutdown:
                     self._count(signum)
 
     def _count(self, signum: int) -> None:
+        if self.finishing:
+            self.tell()
+            os._exit(EXIT_CODE)
         self.signals += 1
         if self.signals == 1:
             self.requested.set_result(signum)

@@ -84,12 +84,13 @@ def _wait_for(moment: str, sweep: subprocess.Popen, folder: Path, uri: str, rng)
         time.sleep(rng.uniform(0.5, 4.0))  # importing, opening the store, planning
         return
     deadline = time.time() + 120
+    journaled = _journal_entries(folder)
     while time.time() < deadline and sweep.poll() is None:
-        if moment == "replay" and not _journal_entries(folder):
+        if moment == "replay" and _journal_entries(folder) < journaled:
             return  # the journal is being replayed (or was, fast): interrupt now
         if moment in ("running", "logging") and sum(_finished(uri, "intr").values()) >= 1:
             break
-        time.sleep(0.2 if moment == "replay" else 0.5)
+        time.sleep(0.05 if moment == "replay" else 0.5)
     if moment == "running":
         time.sleep(rng.uniform(0.0, 3.0))
     # "logging": at once, when results arrive several a second and each is being logged
@@ -130,7 +131,7 @@ def trial(folder: Path, moment: str, rng, how: str = "group-sigint", repeats: in
     argv = ["sweep", str(path), "--jobs", str(jobs), "--tracking-uri", uri, "--no-artifacts",
             "--quiet"]
     if moment == "replay":
-        _leave_journal(folder, path, uri, count=min(repeats, 40))
+        _leave_journal(folder, path, uri, count=repeats // 2)  # and half left to compute
     before = _finished(uri, "intr")
     sweep = _start(argv, folder)
     tree = psutil.Process(sweep.pid)
