@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+import errno
 import os
 import shutil
 from pathlib import Path
 from typing import Any, Sequence
+
+# How a full disk reads in SQLite's and the OS's messages, where no errno survives.
+_FULL_DISK_TEXTS = ("database or disk is full", "No space left on device", "Disk quota exceeded")
 
 
 def write_together(files: Sequence[tuple[Path, Any]]) -> None:
@@ -46,3 +50,77 @@ def _keep_copy(path: Path, backup: Path) -> None:
 def atomic_write(path: str | Path, write) -> None:
     """``write(temp_path)``, then rename over ``path``: never a half-written file."""
     write_together([(Path(path), write)])
+
+
+def no_space(exc: BaseException | None) -> bool:
+    """Whether ``exc``, or an exception it was raised from, is a full disk."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        if any(text in str(exc) for text in _FULL_DISK_TEXTS):
+            return True
+        exc = exc.__cause__ or exc.__context__
+    return False
+
+
+def failed_path(exc: BaseException | None) -> str | None:
+    """The file an OSError in ``exc``'s chain was writing (a copy's destination)."""
+    seen: set[int] = set()
+    while exc is not None and id(exc) not in seen:
+        seen.add(id(exc))
+        if isinstance(exc, OSError) and (exc.filename2 or exc.filename):
+            return str(exc.filename2 or exc.filename)
+        exc = exc.__cause__ or exc.__context__
+    return None
+
+
+def existing(path: str | Path) -> Path:
+    """``path``, or its nearest folder that exists."""
+    path = Path(path).absolute()
+    while not path.exists() and path != path.parent:
+        path = path.parent
+    return path
+
+
+def free_bytes(path: str | Path) -> int:
+    """Free space, in bytes, on the filesystem that holds ``path``."""
+    return shutil.disk_usage(existing(path)).free
+
+
+def same_device(a: str | Path, b: str | Path) -> bool:
+    return os.stat(existing(a)).st_dev == os.stat(existing(b)).st_dev
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if abs(n) < 1000 or unit == "TB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} TB"
+
+
+class SpaceMeter:
+    """Free space on the filesystems of ``paths`` when a sweep starts, to tell
+    how much more its remaining runs need when one of them fills up."""
+
+    def __init__(self, paths):
+        self.start: dict[str, int] = {}
+        for path in paths:
+            try:
+                self.start[str(path)] = free_bytes(path)
+            except OSError:
+                continue
+
+    def needed(self, path: str | Path, done: int, left: int) -> int | None:
+        """Bytes ``left`` more runs take at ``path``, at the rate of the ``done``
+        so far; None when nothing was measured there."""
+        for start, free in self.start.items():
+            try:
+                if same_device(start, path):
+                    used = free - free_bytes(path)
+                    return int(used / done * left) if done and used > 0 else None
+            except OSError:
+                continue
+        return None

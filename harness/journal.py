@@ -24,8 +24,9 @@ from typing import Iterator
 
 import numpy as np
 
+from ..errors import DiskFull
 from .execute import ARRAY_FIELDS, record_fields, record_from_fields
-from .files import atomic_write
+from .files import atomic_write, free_bytes, human_bytes, no_space
 from .ownership import STALE_S, Owner
 
 FOLDER = "mpe3d-journal"
@@ -59,15 +60,22 @@ class Journal:
             with open(temp, "wb") as handle:  # np.savez(name) would append .npz to the temp name
                 np.savez(handle, **arrays)
         text = json.dumps({"meta": meta, "record": record_fields(record)})
-        for attempt in range(3):  # another sweep in this folder may tidy it away meanwhile
-            self.folder.mkdir(parents=True, exist_ok=True)
-            try:
-                atomic_write(path.with_suffix(".npz"), save_arrays)
-                atomic_write(path, lambda temp: temp.write_text(text))
-                break
-            except FileNotFoundError:
-                if attempt == 2:
-                    raise
+        try:
+            for attempt in range(3):  # another sweep in this folder may tidy it away meanwhile
+                self.folder.mkdir(parents=True, exist_ok=True)
+                try:
+                    atomic_write(path.with_suffix(".npz"), save_arrays)
+                    atomic_write(path, lambda temp: temp.write_text(text))
+                    break
+                except FileNotFoundError:
+                    if attempt == 2:
+                        raise
+        except OSError as exc:
+            path.with_suffix(".npz").unlink(missing_ok=True)  # half an entry is no entry
+            if no_space(exc):
+                raise DiskFull(f"cannot journal a computed run: no space left at {self.folder} "
+                               f"({human_bytes(free_bytes(self.folder))} free)", str(self.folder)) from None
+            raise
         return Entry(path, meta, record)
 
     def remove(self, entry: Entry) -> None:

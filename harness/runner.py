@@ -31,8 +31,9 @@ from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
 from .config import BACKENDS, RunConfig
-from ..errors import MpeError, StoreError
+from ..errors import DiskFull, MpeError, StoreError
 from .execute import RunRecord, failed_record, run_record
+from .files import SpaceMeter, human_bytes, same_device
 from .journal import Journal
 from .ownership import Heartbeat, Owner
 from .shutdown import EXIT_CODE, GRACE_S, NoShutdown, Shutdown, kill_descendants
@@ -302,6 +303,9 @@ class _Loop:
         self.waiting: list[_Task] = []  # claimed by another live sweep
         self.open_parents = [p.parent_id for p in plans if p.parent_id]
         self.foreign_code: set[str] = set()
+        self.space = SpaceMeter([journal.folder, *tracker.local_folders()])
+        self.logged = 0  # results in the store or the journal
+        self.lost = 0  # computed, but no room anywhere to keep them: computed again next time
 
     def run(self, heartbeat: Heartbeat, stop: Shutdown) -> bool:
         """Compute and log every task; False when ``stop`` was requested first
@@ -377,9 +381,26 @@ class _Loop:
 
     def _finish(self, future: cf.Future, task: _Task) -> None:
         record = self._record(future, task)
-        entry = self.journal.write(record, self._meta(task))  # on disk before the store
+        try:
+            entry = self.journal.write(record, self._meta(task))  # on disk before the store
+        except DiskFull:
+            self._unjournaled(task, record)
+            raise
         self.tracker.log_record(task.run_id, record, artifacts=self.artifacts)
         self.journal.remove(entry)
+        self._count(task, record)
+
+    def _unjournaled(self, task: _Task, record: RunRecord) -> None:
+        """No room for the journal: the store may still have some (another disk)."""
+        try:
+            self.tracker.log_record(task.run_id, record, artifacts=self.artifacts)
+        except StoreError:
+            self.lost += 1
+        else:
+            self._count(task, record)
+
+    def _count(self, task: _Task, record: RunRecord) -> None:
+        self.logged += 1
         plan = task.plan
         plan.counts[record.status] += 1
         if record.error:
@@ -426,25 +447,48 @@ class _Loop:
                 pass
 
     def drain(self, error: StoreError) -> StoreError:
-        """The store failed: keep in the journal what finishes within DRAIN_S."""
-        deadline = time.monotonic() + DRAIN_S
+        """The store failed: keep in the journal what finishes within DRAIN_S
+        (nothing is waited for when the journal's disk is the full one)."""
+        full = isinstance(error, DiskFull)
+        wait = 0.0 if full and same_device(error.path, self.journal.folder) else DRAIN_S
+        deadline, journaled = time.monotonic() + wait, []
         while self.in_flight and time.monotonic() < deadline:
             done, _ = cf.wait(self.in_flight, timeout=deadline - time.monotonic(),
                               return_when=cf.FIRST_COMPLETED)
             for future in done:
                 task = self.in_flight.pop(future)
-                self.journal.write(self._record(future, task), self._meta(task))
-        abandoned = len(self.in_flight)
+                try:
+                    self.journal.write(self._record(future, task), self._meta(task))
+                except DiskFull:
+                    self.lost, deadline = self.lost + 1, 0.0
+                    continue
+                journaled.append(task.run_id)
+                self.logged += 1
+        abandoned = [task.run_id for task in self.in_flight.values()]
         self.pool.terminate()
         kept = self.journal.pending(self.tracker.uri)
-        return StoreError(f"{error.message}; stopped: {kept} computed result(s) wait in "
-                          f"{self.journal.folder} and go into the store at the next run of this "
-                          f"command; {abandoned} run(s) in flight abandoned")
+        if not full:  # an unreachable store would only make closing its runs wait
+            return StoreError(f"{error.message}; stopped: {kept} computed result(s) wait in "
+                              f"{self.journal.folder} and go into the store at the next run of "
+                              f"this command; {len(abandoned)} run(s) in flight abandoned")
+        self.interrupted(abandoned + journaled, reason="no space left on the device")
+        return DiskFull(self._no_space(error, kept), error.path)
 
-    def interrupted(self, abandoned: list[str]) -> None:
+    def _no_space(self, error: DiskFull, kept: int) -> str:
+        left = sum(plan.pending for plan in self.plans)
+        need = self.space.needed(error.path, self.logged, left)
+        text = f"{error.message}; stopped, every finished run kept"
+        if kept:
+            text += f" ({kept} in {self.journal.folder}, logged at the next run of this command)"
+        if self.lost:
+            text += f"; {self.lost} result(s) with no room anywhere are computed again"
+        more = f"about {human_bytes(need)} more" if need else "more space"
+        return text + f"; the {left} run(s) left need {more} there: free it and run the same command"
+
+    def interrupted(self, abandoned: list[str], reason: str = "the sweep was interrupted") -> None:
         """Close the ``abandoned`` claims and our open parents as KILLED."""
         with contextlib.suppress(Exception):
-            self.tracker.kill(abandoned, "the sweep was interrupted")
+            self.tracker.kill(abandoned, reason)
         for plan in self.plans:
             if plan.parent_id in self.open_parents:
                 with contextlib.suppress(Exception):

@@ -21,7 +21,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ..errors import MpeError, StoreError, first_line, suggest
+from ..errors import DiskFull, MpeError, StoreError, first_line, suggest
+from .files import failed_path, free_bytes, human_bytes, no_space
 from .identity import code_identity, git_commit
 from .ownership import STALE_S, Owner
 
@@ -89,6 +90,9 @@ def _quiet_mlflow() -> None:
     for name in ("mlflow", "alembic"):
         logging.getLogger(name).setLevel(logging.WARNING)
     logging.getLogger("urllib3").setLevel(logging.ERROR)
+    # The store logs each failed database call with its traceback, then raises
+    # it: the raised error becomes our one line (a full disk, a lock).
+    logging.getLogger("mlflow.store.db.utils").setLevel(logging.CRITICAL)
 
 
 def _check_server(uri: str) -> None:
@@ -116,7 +120,15 @@ def _store_errors(uri: str, action: str) -> Iterator[None]:
     except MpeError:
         raise
     except Exception as exc:  # noqa: BLE001 - the store's many error types, one message
+        if no_space(exc):
+            path = failed_path(exc) or _database(uri) or uri
+            raise DiskFull(f"tracking store {uri}: cannot {action}: no space left at {path} "
+                           f"({human_bytes(free_bytes(path))} free)", path) from None
         raise StoreError(f"tracking store {uri}: cannot {action}: {_reason(exc)}") from None
+
+
+def _database(uri: str) -> str | None:
+    return uri[len("sqlite:///"):] if uri.startswith("sqlite:///") else None
 
 
 def _reason(exc: Exception) -> str:
@@ -169,7 +181,7 @@ def _open_sqlite(uri: str, database: Path):
             client.search_experiments(max_results=1)  # creates the tables, now, under the lock
     except BaseException as exc:
         _remove(made)  # a failed opening leaves the user's folder as it was
-        if isinstance(exc, OSError):
+        if isinstance(exc, OSError) and not no_space(exc):
             raise StoreError(f"tracking store {uri}: cannot open it: {exc.strerror or exc}") from None
         raise
     return client
@@ -227,6 +239,11 @@ class Tracker:
         with _store_errors(self.uri, "open it"):
             self.client = _open_sqlite(self.uri, database) if database is not None \
                 else MlflowClient(tracking_uri=self.uri)
+
+    def local_folders(self) -> list[Path]:
+        """The folders of this machine the store writes to (its database, its artifacts)."""
+        database = _database(self.uri)
+        return [Path(database).parent, Path(database).parent / "mlartifacts"] if database else []
 
     def experiment_id(self, name: str, create: bool = True) -> str | None:
         """The id of experiment ``name``, created (if ``create``) when missing."""

@@ -13,6 +13,7 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import pytest
 from mlflow.tracking import MlflowClient
 
 from mpe3d.harness.cli import main
@@ -416,3 +417,72 @@ def test_jobs_1_jobs_2_and_dask_are_bit_identical(tmp_path):
     assert len(results["serial"]) == 4
     assert results["loky"] == results["serial"]  # exact equality, not approx: every bit
     assert results["dask"] == results["serial"]
+
+
+# -- a disk that fills up mid-sweep -----------------------------------------------------
+
+FULL = "name: full\nbase: {shape: chair, points: 400, views: 5, solver: refine}\nrepeats: %d\n"
+
+
+def check_stopped_for_space(code, err, uri, configs, folder):
+    lines = err.strip().splitlines()
+    assert code == 3 and len(lines) == 1 and "Traceback" not in err, err
+    assert "no space left at" in lines[0] and "free" in lines[0] and "need" in lines[0], lines[0]
+    kids, parents = children(uri, "full")
+    assert "RUNNING" not in {r.info.status for r in kids + parents}
+    done = {r.data.tags[HASH_TAG] for r in kids if r.info.status == "FINISHED"}
+    assert 0 < len(done) < len(configs)
+    return len(done) + Journal(folder / "mpe3d-journal").pending(uri)
+
+
+def test_a_full_disk_mid_sweep_is_one_line_and_the_rerun_completes(tmp_path, capsys, monkeypatch):
+    """An injected ENOSPC where MLflow copies a run's artifacts, from the 6th run on."""
+    import errno
+
+    from mpe3d.harness.tracking import Tracker
+
+    path = tmp_path / "full.yaml"
+    path.write_text(FULL % 12)
+    uri = f"sqlite:///{tmp_path}/t.db"
+    monkeypatch.chdir(tmp_path)
+    calls = {"n": 0}
+    real = Tracker._log_artifacts
+
+    def fill_up(self, run_id, record, artifacts):
+        calls["n"] += 1
+        if calls["n"] > 5:
+            raise OSError(errno.ENOSPC, "No space left on device", "/tmp/x.ply",
+                          None, str(tmp_path / "mlartifacts" / run_id / "x.ply"))
+        return real(self, run_id, record, artifacts)
+    monkeypatch.setattr(Tracker, "_log_artifacts", fill_up)
+    code = main(["sweep", str(path), "--jobs", "1", "--quiet", "--tracking-uri", uri])
+    kept = check_stopped_for_space(code, capsys.readouterr().err, uri, load_sweep(path).runs, tmp_path)
+    assert kept == 6  # 5 in the store, and the 6th in the journal: computed, never lost
+    monkeypatch.setattr(Tracker, "_log_artifacts", real)  # space freed
+    assert main(["sweep", str(path), "--jobs", "1", "--quiet", "--tracking-uri", uri]) == 0
+    finished_once(children(uri, "full")[0], load_sweep(path).runs)
+
+
+@pytest.mark.slow
+def test_a_tmpfs_that_fills_mid_sweep_is_one_line_and_the_rerun_completes(tmp_path):
+    """A real 10 MB filesystem holding the store, its artifacts and the journal."""
+    mount = tmp_path / "small"
+    mount.mkdir()
+    made = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=10m", "tmpfs", str(mount)],
+                          capture_output=True)
+    if made.returncode != 0:
+        pytest.skip("this machine does not allow a tmpfs mount (the injected ENOSPC test covers it)")
+    try:
+        path = mount / "full.yaml"
+        path.write_text(FULL % 100)
+        uri = f"sqlite:///{mount}/mlflow.db"
+        argv = ["sweep", str(path), "--jobs", "2", "--quiet", "--tracking-uri", uri]
+        first = run_cli(*argv, cwd=mount)  # its stdout and stderr go to pipes, not to the full disk
+        configs = load_sweep(path).runs
+        check_stopped_for_space(first.returncode, first.stderr, uri, configs, mount)
+        subprocess.run(["mount", "-o", "remount,size=80m", str(mount)], check=True)
+        again = run_cli(*argv, cwd=mount)
+        assert again.returncode == 0, again.stderr
+        finished_once(children(uri, "full")[0], configs)
+    finally:
+        subprocess.run(["umount", "-l", str(mount)], capture_output=True)

@@ -35,6 +35,15 @@ class StoreError(MpeError):
     exit_code = 3
 
 
+class DiskFull(StoreError):
+    """No space left where the store, its artifacts or the journal are written
+    (exit code 3); ``path`` is where the write failed."""
+
+    def __init__(self, message: str, path: str):
+        super().__init__(message)
+        self.path = path
+
+
 def first_line(exc: BaseException, limit: int = 300) -> str:
     """An exception's first line of text (its type's name when it has none)."""
     lines = str(exc).strip().splitlines()
