@@ -118,6 +118,7 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[di
             continue
         out[f"tracks_{method}_s"] = time.perf_counter() - start
         placed = ~np.isin(result.ids, result.report["unplaced"]["ids"])
+        out[f"tracks_{method}_unplaced"] = int(result.report["unplaced"]["count"])
         shared = [(k, row[pairs[int(i)]]) for k, i in enumerate(result.ids)
                   if placed[k] and int(i) in pairs]
         if len(shared) < MIN_ALIGNED:

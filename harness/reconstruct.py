@@ -24,6 +24,7 @@ import numpy as np
 
 from mpe3d import solvers
 from mpe3d.solvers import Observations, View, bundle
+from mpe3d.solvers.bundle import FAR_FACTOR, MIN_RAY_ANGLE
 from mpe3d.solvers.cameras import CAMERAS
 from mpe3d.solvers.degenerate import check_geometry, collect_notes
 
@@ -366,12 +367,13 @@ def _reprojection_report(problem: Problem, tracks, fit, runtime: float) -> dict:
     observations."""
     obs, ids, names = problem.observations, problem.ids, problem.view_names
     length2 = np.sum(fit.residuals ** 2, axis=1)
-    kept = ~fit.dropped
+    kept = fit.counted  # the kept observations of the placed points
     per_view = [float(np.sqrt(np.mean(length2[(tracks.view == k) & kept])))
                 if np.any((tracks.view == k) & kept) else None for k in range(obs.n_views)]
     dropped = [{"view": names[k], "point": _plain(ids[i])}
                for k, i in zip(tracks.view[fit.dropped], tracks.point[fit.dropped])]
     unplaced = ids[~fit.info["placed"]]
+    weak = int(fit.info["weak"].sum())
     cameras = [{"view": name, **camera} for name, camera in zip(names, fit.cameras.matrices())]
     return {
         "points": int(obs.n_points), "views": int(obs.n_views), "objective": "reprojection",
@@ -386,7 +388,11 @@ def _reprojection_report(problem: Problem, tracks, fit, runtime: float) -> dict:
                         else problem.cameras).tolist(),
         "dropped": {"count": len(dropped), "threshold_sigmas": problem.outlier_threshold,
                     "observations": dropped},
-        "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist()},
+        "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist(),
+                     "weak_geometry": weak,  # of them: placed, but their depth is not fixed
+                     "rule": f"seen in fewer than 2 views, or rays meeting under "
+                             f"{MIN_RAY_ANGLE:g} degrees, or farther than {FAR_FACTOR:g} times "
+                             "the cloud's median radius"},
         "converged": bool(fit.converged), "iterations": int(fit.iterations),
         "termination": fit.termination, "runtime_s": runtime, "code": code_identity(),
     }

@@ -59,7 +59,8 @@ from .epipolar import epipolar_outliers
 from .factorize import _stacked, _sum_by, affine_als, metric_upgrade_pd
 from .linalg import elongation
 from .stress import project_rows
-from .triangulation import dlt_rows, least_squares_points, robust_points
+from .triangulation import (dlt_rows, least_squares_points, ray_directions, robust_points,
+                            widest_angles)
 
 LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 # Focal lengths tried from the weak-perspective start, in units of the image size.
@@ -82,6 +83,14 @@ _DENSE_Y = 4_000_000  # entries of the Schur factor Y below which it is made den
 # wrong match is typically hundreds of sigmas away.
 OUTLIER_THRESHOLD = 20.0
 # Rayleigh: the median of ||r|| for isotropic Gaussian 2D residuals of std sigma.
+# Weak geometry: a point whose kept rays all meet under MIN_RAY_ANGLE degrees
+# (COLMAP's triangulator refuses these too), or that lies farther from the
+# cloud's median than FAR_FACTOR times the median distance of the cloud's
+# points to it, has no depth the views fix: it is left unplaced, like a point
+# seen once. On COLMAP's tracks of 250 photos one such point, its rays a
+# fraction of a degree apart, stood 7e8 away and set the whole cloud's mean CD.
+MIN_RAY_ANGLE = 1.5
+FAR_FACTOR = 100.0
 _RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))
 AUTO_RATIO = 0.8  # camera="auto" keeps the pinhole below this share of the weak median residual
 DISAGREE_RATIO = 0.5  # another model this much better is said
@@ -117,6 +126,7 @@ class BundleResult:
     cameras: Cameras
     residuals: np.ndarray  # (T, 2), pixels, for every observation
     dropped: np.ndarray  # (T,) bool: observations taken for wrong matches
+    counted: np.ndarray  # (T,) bool: kept observations of placed points, what rms() measures
     converged: bool
     iterations: int  # Levenberg-Marquardt iterations of the final solve
     termination: str
@@ -125,8 +135,10 @@ class BundleResult:
     info: dict[str, Any] = field(default_factory=dict)
 
     def rms(self, rows=None) -> float:
-        """sqrt(mean ||r_t||^2) in pixels over ``rows``, default all but the dropped."""
-        return _rms(self.residuals[~self.dropped if rows is None else rows])
+        """sqrt(mean ||r_t||^2) in pixels over ``rows``, by default the kept
+        observations of the placed points (an unplaced point's depth, and so
+        its residual, is a guess)."""
+        return _rms(self.residuals[self.counted if rows is None else rows])
 
 
 # -- the start -------------------------------------------------------------------
@@ -229,24 +241,88 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     _say_if_the_data_disagree(camera, median)
     fit, dropped = _without_outliers(fits[camera], tracks, flagged, outlier_threshold, solve)
     fit, dropped = _readmitted(fit, tracks, dropped, outlier_threshold, solve)
-    return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms)
+    return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, solve)
 
 
-def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms) -> BundleResult:
-    """The result of a fit: points seen once placed on their rays, every residual."""
+def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, solve) -> BundleResult:
+    """The result of a fit: weak points out of it, points seen once placed on
+    their rays, every residual."""
+    fit, narrow, far = _without_weak(fit, tracks, dropped, solve)
     X, cameras, history, converged = fit
     placed = _placed(tracks, _informative(tracks, ~dropped))
-    X = _place_unplaced(X, cameras, tracks, placed, ~dropped)
+    # a narrow point keeps the adjustment's depth (its best guess, and its rays'
+    # fit); a far one has none worth keeping: it goes to the cloud's depth
+    X = _place_unplaced(X, cameras, tracks, placed & ~far, ~dropped)
+    weak = narrow | far
+    _say_if_depth_is_free(X, placed, weak, camera)
+    placed &= ~weak
     residuals = cameras.project(X, tracks.view, tracks.point) - tracks.z
-    if placed.sum() > 3 and elongation(X[placed]) > _ELONGATION:
-        warn(f"the views do not determine the cloud's depth under the {camera} camera (it is "
-             f"{elongation(X[placed]):.3g} times longer than wide): their baseline is too "
-             "small for it" + ("" if camera == "perspective" else "; try camera='perspective'"))
     return BundleResult(points=X, cameras=cameras, residuals=residuals, dropped=dropped,
+                        counted=_counted(dropped, placed[tracks.point]),
                         converged=converged, iterations=len(history) - 1,
                         termination="converged" if converged else f"stopped at max_iter={max_iter}",
                         affine_rms=affine_rms, camera=camera,
-                        info={"rms_history": history, "rms_by_camera": rms, "placed": placed})
+                        info={"rms_history": history, "rms_by_camera": rms, "placed": placed,
+                              "weak": weak})
+
+
+def _counted(dropped, placed_rows):
+    """The observations rms() measures: the kept ones of placed points, or all
+    kept ones when no point is placed (views that fix no depth at all)."""
+    counted = ~dropped & placed_rows
+    return counted if counted.any() else ~dropped
+
+
+def _without_weak(fit, tracks, dropped, solve):
+    """The fit solved again without the points of weak geometry, as COLMAP
+    filters its points before its last adjustment: their rays, nearly
+    parallel, pull on the cameras for no depth (a point 7e8 away among COLMAP's
+    250 photos). Returns the fit and the ``narrow`` and ``far`` masks."""
+    X, cameras = fit[:2]
+    placed = _placed(tracks, _informative(tracks, ~dropped))
+    narrow, far = weak_geometry(X, cameras, tracks, ~dropped, placed)
+    weak = narrow | far
+    if not weak.any() or weak.sum() > placed.sum() / 2:  # then no depth is fixed: said, not solved
+        return fit, narrow, far
+    strong = _informative(tracks, ~dropped & ~(narrow | far)[tracks.point])
+    X, cameras, history, converged = adjust(X, cameras, tracks.subset(strong), **solve)
+    return (X, cameras, np.concatenate([fit[2], history[1:]]), converged), narrow, far
+
+
+def weak_geometry(X, cameras: Cameras, tracks: Tracks, kept: np.ndarray,
+                  placed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Two (N,) bool masks of the ``placed`` points whose depth the views do
+    not fix: ``narrow``, their ``kept`` rays all meet under ``MIN_RAY_ANGLE``
+    degrees; ``far``, they lie farther from the cloud's median than
+    ``FAR_FACTOR`` times the median distance of the placed points to it."""
+    if not placed.any():
+        return placed.copy(), placed.copy()
+    rows = kept & placed[tracks.point]
+    rays, lines = ray_directions(cameras.projection_matrices(), X, tracks.view[rows],
+                                 tracks.point[rows])
+    narrow = widest_angles(rays, tracks.point[rows], tracks.n_points, lines) < MIN_RAY_ANGLE
+    centre = np.median(X[placed], axis=0)
+    distance = np.linalg.norm(X - centre, axis=1)
+    far = ~(distance <= FAR_FACTOR * np.median(distance[placed]))  # a nan is far too
+    return placed & narrow, placed & far
+
+
+def _say_if_depth_is_free(X, placed, weak, camera) -> None:
+    """One line when the views fix the depth of too few points, or of none
+    but a cloud far longer than wide: their baseline is too small."""
+    fixed = placed & ~weak
+    if placed.sum() <= 3:
+        return
+    if weak.sum() > placed.sum() / 2:
+        why = (f"{int(weak.sum())} of {int(placed.sum())} points' rays meet under "
+               f"{MIN_RAY_ANGLE:g} degrees, left unplaced")
+    elif fixed.sum() > 3 and elongation(X[fixed]) > _ELONGATION:
+        why = f"it is {elongation(X[fixed]):.3g} times longer than wide"
+    else:
+        return
+    warn(f"the views do not determine the cloud's depth under the {camera} camera ({why}): "
+         "their baseline is too small for it"
+         + ("" if camera == "perspective" else "; try camera='perspective'"))
 
 
 @_one_blas_thread
@@ -282,7 +358,7 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
     fit, dropped = _without_outliers(fit, tracks, np.zeros(len(used), dtype=bool),
                                      outlier_threshold, {**solve, "frozen": frozen})
     return _result(fit, tracks, dropped, cameras.model if cameras.model == MATRIX
-                   else "orthographic", max_iter, float("nan"), {})
+                   else "orthographic", max_iter, float("nan"), {}, {**solve, "frozen": frozen})
 
 
 def _scaled(tracks, solve, grown=None):
@@ -438,8 +514,9 @@ def _say_if_the_data_disagree(camera, median):
 
 
 def _place_unplaced(X, cameras, tracks, placed, kept):
-    """Points kept in fewer than 2 views have no depth: each goes where its one
-    view puts it at the depth of the cloud's centre (its other coordinates are
+    """Points kept in fewer than 2 views, or whose rays meet too narrowly
+    (:func:`weak_geometry`), have no depth: each goes where its views put it
+    at the depth of the cloud's centre (its other coordinates are
     the least-squares ones of the views it has)."""
     X = X.copy()
     centre = X[placed].mean(axis=0) if placed.any() else np.zeros(3)

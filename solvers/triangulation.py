@@ -104,3 +104,36 @@ def _lengths(cameras, tracks, rows, owner, x):
 def _cost(cameras, tracks, rows, owner, x, tau):
     truncated = np.minimum(_lengths(cameras, tracks, rows, owner, x), tau) ** 2
     return np.bincount(owner, weights=truncated, minlength=len(x))
+
+
+def ray_directions(P: np.ndarray, X: np.ndarray, view: np.ndarray, point: np.ndarray):
+    """Unit directions of the rays from each observation's camera to its point,
+    and whether they are lines only (affine cameras, whose centre is at infinity:
+    a view and its opposite see the same line).
+
+    The camera centre is P's null vector C: for a pinhole the ray runs from
+    C[:3] / C[3] to x; for an affine camera (C[3] = 0) along C[:3] itself.
+    """
+    centre = np.linalg.svd(P)[2][:, -1, :]  # (K, 4), P C = 0
+    affine = np.abs(centre[:, 3]) <= 1e-9 * np.linalg.norm(centre[:, :3], axis=1)
+    if affine.all():
+        rays = centre[view, :3]
+    else:
+        rays = X[point] - centre[view, :3] / centre[view, 3:4]
+    norm = np.linalg.norm(rays, axis=1, keepdims=True)
+    return rays / np.where(norm > 0, norm, 1.0), bool(affine.all())
+
+
+def widest_angles(rays: np.ndarray, point: np.ndarray, n_points: int, lines: bool = False):
+    """(n_points,) the widest angle, in degrees, between any two rays of each
+    point (0 for a point with fewer than two): COLMAP's triangulation angle."""
+    order = np.argsort(point, kind="stable")
+    p, u = point[order], rays[order]
+    lowest = np.ones(n_points)  # the cosine of the widest angle so far
+    for gap in range(1, len(p)):
+        same = p[gap:] == p[:-gap]  # sorted: pairs `gap` apart within one point
+        if not same.any():
+            break
+        cos = np.einsum("ti,ti->t", u[gap:][same], u[:-gap][same])
+        np.minimum.at(lowest, p[gap:][same], np.abs(cos) if lines else cos)
+    return np.degrees(np.arccos(np.clip(lowest, -1.0, 1.0)))

@@ -111,7 +111,31 @@ def test_warnings_name_the_users_ids_not_indices(rng):
     result = reconstruct(views)
     note = next(w for w in result.report["warnings"] if "fewer than 2 views" in w)
     assert "ids 424242" in note
-    assert result.report["unplaced"] == {"count": 1, "ids": [424242]}
+    unplaced = result.report["unplaced"]
+    assert (unplaced["count"], unplaced["ids"], unplaced["weak_geometry"]) == (1, [424242], 0)
+
+
+def test_a_point_whose_rays_barely_meet_is_left_unplaced_not_at_infinity(rng):
+    """Seen by two cameras a few hundred units apart from 50,000 away, its rays
+    meet at about half a degree: COLMAP would not triangulate it either."""
+    frame, P, X = _pinhole_views(rng)
+    alone = reconstruct([{"name": name, "ids": g["point"].to_numpy(), "xy": g[["x", "y"]].to_numpy()}
+                         for name, g in frame.groupby("view")], camera="perspective")
+    far = np.array([0.0, 0.0, 50_000.0, 1.0])
+    rows = [(f"cam{v}", 777, *((P[v] @ far)[:2] / (P[v] @ far)[2])) for v in (0, 1)]
+    frame = pd.concat([frame, pd.DataFrame(rows, columns=frame.columns)])
+    views = [{"name": name, "ids": g["point"].to_numpy(), "xy": g[["x", "y"]].to_numpy()}
+             for name, g in frame.groupby("view")]
+    result = reconstruct(views, camera="perspective")
+    unplaced = result.report["unplaced"]
+    assert (unplaced["count"], unplaced["ids"], unplaced["weak_geometry"]) == (1, [777], 1)
+    assert "1.5 degrees" in unplaced["rule"]
+    cloud = result.points[result.ids != 777]  # it keeps the adjustment's guess, within the bound
+    centre = np.median(cloud, axis=0)
+    radius = np.median(np.linalg.norm(cloud - centre, axis=1))
+    assert np.linalg.norm(result.points[result.ids == 777] - centre) < bundle.FAR_FACTOR * radius
+    # it pulls on no camera: the others fit as well as without it
+    assert result.report["reprojection_rms_px"] <= 1.01 * alone.report["reprojection_rms_px"]
 
 
 def test_a_capped_solve_says_so(rng):
