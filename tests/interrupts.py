@@ -119,17 +119,18 @@ def _leave_journal(folder: Path, path: Path, uri: str, count: int) -> None:
 
 
 def trial(folder: Path, moment: str, rng, how: str = "group-sigint", repeats: int = 60,
-          points: int = 400, iters: int = 150, jobs: int = 2) -> Outcome:
+          points: int = 400, iters: int = 150, jobs: int = 2, backend: str = "loky") -> Outcome:
     """One interrupt of a real sweep at ``moment``, then its audit and rerun.
 
     ``how``: ``group-sigint`` (a terminal's Ctrl-C), ``sigint`` or ``sigterm``
     (to the main process only), or ``double-sigint`` (Ctrl-C twice, 0.3 s apart).
+    ``backend``: loky (the default) or dask (a local cluster of ``jobs`` workers).
     """
     path = folder / "intr.yaml"
     path.write_text(SWEEP.format(points=points, iters=iters, repeats=repeats))
     uri = f"sqlite:///{folder}/t.db"
     argv = ["sweep", str(path), "--jobs", str(jobs), "--tracking-uri", uri, "--no-artifacts",
-            "--quiet"]
+            "--quiet", "--backend", backend]
     if moment == "replay":
         _leave_journal(folder, path, uri, count=repeats // 2)  # and half left to compute
     before = _finished(uri, "intr")

@@ -53,3 +53,10 @@ def test_ui_stops_on_ctrl_c_with_its_server(tmp_path):
     assert err.strip().splitlines()[-1] == "mpe3d: interrupted; the MLflow UI is stopped"
     _, alive = psutil.wait_procs(family, timeout=EXIT_S)
     assert not alive, [p.pid for p in alive]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("jobs,backend", [(2, "dask"), (1, "loky")])
+def test_a_dask_cluster_and_a_single_job_stop_the_same_way(tmp_path, jobs, backend):
+    check(trial(tmp_path, "running", random.Random(jobs), how="group-sigint", repeats=16,
+                jobs=jobs, backend=backend))
