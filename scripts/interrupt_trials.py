@@ -50,6 +50,7 @@ def main(argv=None) -> int:
         "benchmark": "interrupts", "trials": len(outcomes),
         "by_moment": dict(Counter(o.moment for o in outcomes)),
         "by_signal": dict(Counter(o.how for o in outcomes)),
+        "too_late": sum(o.too_late for o in outcomes),  # the sweep was over: not an interrupt
         "hangs": sum(o.hung for o in outcomes),
         "bad_exit_code": sum(o.exit_code != 130 for o in outcomes if not o.hung),
         "left_processes": sum(bool(o.left_alive) for o in outcomes),

@@ -47,6 +47,7 @@ class Outcome:
     lost: int = 0
     computed_twice: int = 0
     missing: int = 0
+    too_late: bool = False  # every config was logged before the signal: nothing to interrupt
 
     @property
     def clean(self) -> bool:
@@ -92,7 +93,7 @@ def _wait_for(moment: str, sweep: subprocess.Popen, folder: Path, uri: str, rng)
             break
         time.sleep(0.05 if moment == "replay" else 0.5)
     if moment == "running":
-        time.sleep(rng.uniform(0.0, 3.0))
+        time.sleep(rng.uniform(0.0, 1.5))
     # "logging": at once, when results arrive several a second and each is being logged
 
 
@@ -138,6 +139,8 @@ def trial(folder: Path, moment: str, rng, how: str = "group-sigint", repeats: in
     tree = psutil.Process(sweep.pid)
     _wait_for(moment, sweep, folder, uri, rng)
     outcome = Outcome(moment, how)
+    if moment != "planning":  # (reading a store being made would race with its migration)
+        outcome.too_late = len(_finished(uri, "intr")) == repeats  # nothing left to interrupt
     family = {tree.pid}
     try:
         family |= {p.pid for p in tree.children(recursive=True)}
