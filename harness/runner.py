@@ -144,7 +144,7 @@ class _ThreadPool:
     """``--jobs 1``: runs compute in this process, on one daemon thread, so the
     loop keeps its heartbeat, its claims and its outage deadline meanwhile."""
 
-    capacity = 1
+    capacity = workers = 1
 
     def __init__(self):
         self._tasks: queue.SimpleQueue = queue.SimpleQueue()
@@ -190,6 +190,7 @@ class _LokyPool:
         from joblib.externals.loky import get_reusable_executor
 
         workers = jobs if jobs > 0 else (os.cpu_count() or 1)
+        self.workers = workers
         self.capacity = 2 * workers  # one queued behind each running: no worker waits for a claim
         self.executor = get_reusable_executor(max_workers=workers, initializer=_ignore_sigint)
 
@@ -217,7 +218,8 @@ class _DaskPool:
 
     def __init__(self, client):
         self.client = client
-        self.capacity = 2 * max(1, sum(client.nthreads().values()))
+        self.workers = max(1, sum(client.nthreads().values()))
+        self.capacity = 2 * self.workers
         self._held: dict[int, object] = {}  # dask forgets a task whose future is dropped
 
     def submit(self, fn, *args) -> cf.Future:
@@ -423,10 +425,14 @@ class _Loop:
         then close our claims and parents as KILLED. Every run logged stays."""
         self.queue.clear()
         self.waiting.clear()  # claimed by other sweeps: nothing of ours to close
+        # the pools run their calls in the order given: the oldest are the ones running,
+        # those queued behind them are not started, so not waited for
+        running = set(list(self.in_flight)[:self.pool.workers])
         deadline = time.monotonic() + grace_s
-        while self.in_flight and not stop.hurry.is_set() and time.monotonic() < deadline:
-            done, _ = cf.wait(self.in_flight, timeout=min(0.2, deadline - time.monotonic()),
-                              return_when=cf.FIRST_COMPLETED)
+        while running & self.in_flight.keys() and not stop.hurry.is_set() \
+                and time.monotonic() < deadline:
+            done, _ = cf.wait(running & self.in_flight.keys(), return_when=cf.FIRST_COMPLETED,
+                              timeout=min(0.2, deadline - time.monotonic()))
             self._keep(done)
         self.pool.terminate()
         self._keep([future for future in self.in_flight if future.done()])
