@@ -543,7 +543,7 @@ def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "lok
                     raise KeyboardInterrupt
     finally:
         reporter.stop()
-    journal.tidy()
+        journal.tidy()  # an empty journal folder is litter, stopped or not
     return plans
 
 

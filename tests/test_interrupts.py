@@ -20,6 +20,7 @@ def check(outcome) -> None:
 
 def test_ctrl_c_mid_run_stops_cleanly_and_the_rerun_completes(tmp_path):
     check(trial(tmp_path, "running", random.Random(0), how="group-sigint", repeats=24))
+    assert not (tmp_path / "mpe3d-journal").exists()  # emptied and tidied away
 
 
 @pytest.mark.slow
