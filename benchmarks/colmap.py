@@ -26,7 +26,8 @@ KEPT = ("registered_images", "colmap_points", "colmap_models", "cd_x100", "emd_x
         "extract_s", "match_s", "map_s", "runtime_s", "reprojection_px", "focal_error", "tracks_ge2",
         "tracks_ge3", "tracks_triangulated", "tracks_bundle_cd_x100", "tracks_sgd_cd_x100",
         "tracks_refine_cd_x100", "tracks_bundle_surface_cd_x100", "tracks_bundle_s", "tracks_sgd_s",
-        "tracks_refine_s", "tracks_bundle_unplaced", "tracks_bundle_median_x100")
+        "tracks_refine_s", "tracks_bundle_unplaced", "tracks_bundle_median_x100",
+        "tracks_bundle_farthest")
 
 
 def _round(value):

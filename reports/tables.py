@@ -111,7 +111,8 @@ def colmap(frame: pd.DataFrame, published: pd.DataFrame) -> pd.DataFrame:
 def colmap_tracks(frame: pd.DataFrame) -> pd.DataFrame:
     """COLMAP's feature tracks fed to mpe3d: track counts per photo count, and
     each method's CD and median distance (x 100) to COLMAP's triangulation of
-    the same tracks, and its CD to the surface."""
+    the same tracks, its CD to the surface, and how many of its points are
+    unplaced (left out of those scores)."""
     rows = []
     for count, part in frame[frame["pipeline"] == "colmap"].groupby("images.count"):
         row = {"photos": int(count), "tracks >= 2 views": _mean(part, "tracks_ge2"),
@@ -123,5 +124,7 @@ def colmap_tracks(frame: pd.DataFrame) -> pd.DataFrame:
             row[f"{label}: median to COLMAP"] = _mean(part, f"tracks_{key}_median_x100")
             row[f"{label}: CD to surface"] = _mean(part, f"tracks_{key}_surface_cd_x100")
             row[f"{label}: time (s)"] = _mean(part, f"tracks_{key}_s")
+            # left out of its scores: seen once, or of weak geometry (bundle adjustment)
+            row[f"{label}: unplaced"] = _mean(part, f"tracks_{key}_unplaced")
         rows.append(row)
     return pd.DataFrame(rows)
