@@ -753,7 +753,7 @@ def console() -> int:
 
     shutdown = Shutdown().__enter__()  # for the life of the process, finalisation included
     code = main(shutdown=shutdown)
-    shutdown.finishing = True
+    shutdown.settle(code)
     if code == EXIT_CODE and any(t.name == "mpe3d-run" and t.is_alive()
                                  for t in threading.enumerate()):
         sys.stdout.flush()

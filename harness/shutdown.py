@@ -16,8 +16,9 @@ the bound hold whatever the main thread is doing:
 - ``deadline_s`` after the first signal, whatever still runs is the watchdog's:
   it terminates every descendant process, prints the command's line unless it
   was printed, and leaves with exit code 130 without finalising the interpreter;
-- once the command is over (:attr:`Shutdown.finishing`), a signal ends the
-  process at once, with 130 and the line (its work is all done and kept).
+- once the command is over (:meth:`Shutdown.settle`), a signal ends the
+  process at once, with 130 and the line (its work is all done and kept);
+  after an interrupt, whose line is said, further signals are ignored.
 
 Sections that must not be cut halfway (creating a store, logging a result,
 closing claims) run deferred: a signal there only sets the flags, and the
@@ -146,6 +147,17 @@ class Shutdown:
             sys.stderr.flush()
         with contextlib.suppress(OSError):
             os.write(2, (self.line + "\n").encode())
+
+    def settle(self, code: int) -> None:
+        """The command is over with exit ``code``: from now on a signal only ends
+        the process. After an interrupt (130, its line said) a further one is
+        ignored: while the interpreter finalises, Python gives signals back to
+        their default action, and a second Ctrl-C then killed the process
+        (exit -2) after it had said it stopped; an ignored signal stays ignored."""
+        self.finishing = True
+        if code == EXIT_CODE and self._installed:
+            for sig in SIGNALS:
+                signal.signal(sig, signal.SIG_IGN)
 
     def _expire(self) -> None:
         """The watchdog: the bound is up and the process still lives."""
