@@ -82,6 +82,8 @@ class Shutdown:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._sockets[1].close()  # the watcher reads end-of-file and leaves
+        if self._timer is not None:  # an in-process caller (a test) outlives its command
+            self._timer.cancel()
         self._installed = False
 
     # -- what a signal does ----------------------------------------------------
@@ -93,16 +95,17 @@ class Shutdown:
             raise KeyboardInterrupt
 
     def _watch(self, reader: socket.socket) -> None:
-        while True:
-            try:
-                data = reader.recv(64)
-            except OSError:
-                return
-            if not data:
-                return
-            for signum in data:
-                if signum in SIGNALS:
-                    self._count(signum)
+        with reader:
+            while True:
+                try:
+                    data = reader.recv(64)
+                except OSError:
+                    return
+                if not data:
+                    return
+                for signum in data:
+                    if signum in SIGNALS:
+                        self._count(signum)
 
     def _count(self, signum: int) -> None:
         if self.finishing:
