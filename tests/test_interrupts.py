@@ -32,6 +32,7 @@ def test_every_moment_and_every_way_to_stop(tmp_path, moment, how):
     check(trial(tmp_path, moment, random.Random(hash((moment, how)) % 1000), how=how, repeats=16))
 
 
+@pytest.mark.slow  # (test_tracking's UI test stops it by `kill PID` in the default run)
 def test_ui_stops_on_ctrl_c_with_its_server(tmp_path):
     """`mpe3d ui` in its own session, Ctrl-C to the group: 130, one line, no server left."""
     import os
