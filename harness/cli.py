@@ -200,20 +200,19 @@ def _runs_table(frame, all_columns: bool):
     from .config import KEYS
 
     params = [c for c in frame.columns if c in KEYS or c.startswith("solver.")]
-    shown = params if all_columns else list(varying_columns(frame[params]))
+    tags = ["config_hash", "code", "run_id", "start_time", "error"]
     if all_columns:
-        metrics = sorted(c for c in frame.columns if c not in params and c not in (
-            "status", "config_hash", "code", "error", "start_time", "run_id"))
+        shown = params
+        metrics = sorted(set(frame.columns) - set(params) - {"status", *tags})
     else:
+        shown = list(varying_columns(frame[params]))
         metrics = [c for c in RUNS_METRICS if c in frame.columns]
-    table = frame.sort_values(shown + ["start_time"]) if shown else frame.sort_values("start_time")
-    columns = ["status", *shown, *metrics, *(["config_hash"] if all_columns else []), "code"]
+    table = frame.sort_values([*shown, "start_time"])
     if all_columns:
-        columns += ["run_id", "start_time"]
-    if all_columns or (table["status"] != "FINISHED").any():
-        columns.append("error")
-    table = table[columns]
-    return table if all_columns else table.rename(columns={"solver.name": "solver"})
+        return table[["status", *shown, *metrics, *tags]]
+    failed = (table["status"] != "FINISHED").any()
+    return table[["status", *shown, *metrics, "code", *(["error"] if failed else [])]].rename(
+        columns={"solver.name": "solver"})
 
 
 def _print_runs(table, form: str) -> None:

@@ -52,28 +52,25 @@ def atomic_write(path: str | Path, write) -> None:
     write_together([(Path(path), write)])
 
 
-def no_space(exc: BaseException | None) -> bool:
-    """Whether ``exc``, or an exception it was raised from, is a full disk."""
+def _chain(exc: BaseException | None):
+    """``exc`` and the exceptions it was raised from or during, once each."""
     seen: set[int] = set()
     while exc is not None and id(exc) not in seen:
         seen.add(id(exc))
-        if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
-            return True
-        if any(text in str(exc) for text in _FULL_DISK_TEXTS):
-            return True
+        yield exc
         exc = exc.__cause__ or exc.__context__
-    return False
+
+
+def no_space(exc: BaseException | None) -> bool:
+    """Whether ``exc``, or an exception it was raised from, is a full disk."""
+    return any((isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT))
+               or any(text in str(e) for text in _FULL_DISK_TEXTS) for e in _chain(exc))
 
 
 def failed_path(exc: BaseException | None) -> str | None:
     """The file an OSError in ``exc``'s chain was writing (a copy's destination)."""
-    seen: set[int] = set()
-    while exc is not None and id(exc) not in seen:
-        seen.add(id(exc))
-        if isinstance(exc, OSError) and (exc.filename2 or exc.filename):
-            return str(exc.filename2 or exc.filename)
-        exc = exc.__cause__ or exc.__context__
-    return None
+    return next((str(e.filename2 or e.filename) for e in _chain(exc)
+                 if isinstance(e, OSError) and (e.filename2 or e.filename)), None)
 
 
 def existing(path: str | Path) -> Path:
@@ -94,8 +91,8 @@ def same_device(a: str | Path, b: str | Path) -> bool:
 
 
 def human_bytes(n: float) -> str:
-    for unit in ("B", "kB", "MB", "GB", "TB"):
-        if abs(n) < 1000 or unit == "TB":
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(n) < 1000:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000
     return f"{n:.1f} TB"

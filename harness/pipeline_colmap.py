@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from mpe3d import solvers
+from mpe3d.solvers.bundle import median_radii
 
 from . import colmap, metrics, photos, shapes
 from .config import RunConfig
@@ -94,16 +95,6 @@ def _fed_to(method: str, views: list[dict], principal_point):
     return reconstruct(views, objective="stress", solver=method)
 
 
-def _farthest(cloud: np.ndarray) -> float:
-    """How far the farthest point stands from the cloud's median, in median
-    distances to it: the bundle adjustment leaves unplaced what stands beyond
-    ``FAR_FACTOR`` of them (a point at infinity would show here)."""
-    if len(cloud) == 0:
-        return float("nan")
-    distance = np.linalg.norm(cloud - np.median(cloud, axis=0), axis=1)
-    return float(distance.max() / max(np.median(distance), 1e-300))
-
-
 def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[dict, list[str]]:
     """Track counts, and each method's cloud against COLMAP's triangulation of the same tracks."""
     per_track = tracks.views_per_track()
@@ -129,7 +120,10 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[di
         out[f"tracks_{method}_s"] = time.perf_counter() - start
         placed = ~np.isin(result.ids, result.report["unplaced"]["ids"])
         out[f"tracks_{method}_unplaced"] = int(result.report["unplaced"]["count"])
-        out[f"tracks_{method}_farthest"] = _farthest(result.points[placed])
+        # in median radii: bundle adjustment leaves unplaced what stands beyond
+        # FAR_FACTOR of them, so a point at infinity would show here
+        out[f"tracks_{method}_farthest"] = float(median_radii(result.points[placed]).max()) \
+            if placed.any() else float("nan")
         shared = [(k, row[pairs[int(i)]]) for k, i in enumerate(result.ids)
                   if placed[k] and int(i) in pairs]
         if len(shared) < MIN_ALIGNED:

@@ -36,7 +36,7 @@ from .execute import RunRecord, failed_record, run_record
 from .files import SpaceMeter, human_bytes, same_device
 from .journal import Journal
 from .ownership import Heartbeat, Owner
-from .shutdown import EXIT_CODE, GRACE_S, NoShutdown, Shutdown, kill_descendants
+from .shutdown import EXIT_CODE, GRACE_S, Shutdown, kill_descendants
 from .sweep import Sweep
 
 POLL_S = 2.0  # how often a sweep looks again at a claim of another sweep it waits for
@@ -85,7 +85,7 @@ class Reporter:
 def replay_journal(tracker, journal: Journal, stop: Shutdown | None = None) -> int:
     """Log into ``tracker`` the results dead sweeps left in ``journal``; a stop
     request ends it between two entries (the rest wait for the next sweep)."""
-    stop = stop or NoShutdown()
+    stop = stop or Shutdown()  # not installed: never requested
     replayed = 0
     for entry in journal.orphans(tracker.uri):
         replayed += tracker.replay(entry)
@@ -109,7 +109,7 @@ def plan_sweeps(sweeps: Iterable[Sweep], tracker, rerun_failed: bool = False,
     everything. Sweeps sharing an experiment never plan one config twice.
     A stop request raises :class:`KeyboardInterrupt` between two sweeps.
     """
-    stop = stop or NoShutdown()
+    stop = stop or Shutdown()  # not installed: never requested
     plans, planned = [], {}
     for sweep in sweeps:
         stop.check()
@@ -164,13 +164,13 @@ class _ThreadPool:
         self._tasks.put((future, fn, args))
         return future
 
-    def close(self, abandon: bool) -> None:
+    def close(self) -> None:
+        """Its thread ends after the run it is in; a run inside compiled code
+        cannot be stopped from another thread, so a stopped command leaves
+        without waiting for it (``cli.console``)."""
         self._tasks.put(None)
 
-    def terminate(self) -> None:
-        """A run inside compiled code cannot be stopped from another thread: the
-        command leaves without waiting for it (``cli.console``)."""
-        self._tasks.put(None)
+    terminate = close
 
 
 def _ignore_sigint() -> None:
@@ -197,9 +197,8 @@ class _LokyPool:
     def submit(self, fn, *args) -> cf.Future:
         return self.executor.submit(fn, *args)
 
-    def close(self, abandon: bool) -> None:
-        if abandon:
-            self.terminate()
+    def close(self) -> None:
+        """Nothing: the reusable executor serves the next sweep of this process."""
 
     def terminate(self) -> None:
         """Stop the workers now. Terminating their processes is loky's own
@@ -236,9 +235,8 @@ class _DaskPool:
         task.add_done_callback(done)
         return future
 
-    def close(self, abandon: bool) -> None:
-        if abandon:
-            self.terminate()
+    def close(self) -> None:
+        """Nothing: the client's context closes the cluster."""
 
     def terminate(self) -> None:
         if self._held:
@@ -279,7 +277,7 @@ def _pool(jobs: int, backend: str, scheduler: str | None) -> Iterator:
     try:
         yield pool
     finally:
-        pool.close(abandon=False)
+        pool.close()
 
 
 # -- the run loop -----------------------------------------------------------------
@@ -519,7 +517,7 @@ def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "lok
         raise MpeError(f"--backend: unknown backend '{backend}' (use {' or '.join(BACKENDS)})")
     reporter = reporter or Reporter()
     journal = journal or Journal()
-    stop = stop or NoShutdown()
+    stop = stop or Shutdown()  # not installed: never requested
     owner = Owner.current()
     for plan in plans:
         if plan.todo:
@@ -599,7 +597,7 @@ def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "
     its sweep's summary table and figures (``reproduce-paper`` logs its own
     report's sections instead, drawn once).
     """
-    stop = stop or NoShutdown()
+    stop = stop or Shutdown()  # not installed: never requested
     plans: list[Plan] = []
     try:
         plans = _plan(sweeps, tracker, stop, say, rerun_failed=rerun_failed, force=force,

@@ -169,15 +169,15 @@ class Shutdown:
         os._exit(EXIT_CODE)
 
 
-def kill_descendants(grace_s: float = 1.0, only=None) -> int:
+def kill_descendants(grace_s: float = 1.0, only=None) -> None:
     """Terminate this process's descendants (those ``only(process)`` accepts),
-    then kill the ones still alive after ``grace_s``; returns how many there were."""
+    then kill the ones still alive after ``grace_s``."""
     import psutil
 
     try:
         family = psutil.Process().children(recursive=True)
     except psutil.Error:
-        return 0
+        return
     if only is not None:
         family = [p for p in family if _accepts(only, p)]
     for process in family:
@@ -188,7 +188,6 @@ def kill_descendants(grace_s: float = 1.0, only=None) -> int:
         with contextlib.suppress(psutil.Error):
             process.kill()
     psutil.wait_procs(alive, timeout=grace_s)
-    return len(family)
 
 
 def _accepts(only, process) -> bool:
@@ -198,10 +197,3 @@ def _accepts(only, process) -> bool:
         return bool(only(process))
     except psutil.Error:
         return False
-
-
-class NoShutdown(Shutdown):
-    """For library callers: never requested; Python's own KeyboardInterrupt applies."""
-
-    def __enter__(self) -> "NoShutdown":
-        return self

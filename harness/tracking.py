@@ -58,10 +58,10 @@ def resolve_uri(uri: str | None = None) -> str:
 
 
 def artifact_root(uri: str) -> str | None:
-    """Artifacts of a SQLite store go to ``mlartifacts`` beside the database."""
-    if uri.startswith("sqlite:///"):
-        return (Path(uri[len("sqlite:///"):]).parent / "mlartifacts").as_uri()
-    return None  # a server or file store decides for itself
+    """Artifacts of a SQLite store go to ``mlartifacts`` beside the database
+    (a server or file store decides for itself: None)."""
+    database = _database(uri)
+    return (Path(database).parent / "mlartifacts").as_uri() if database else None
 
 
 # Steps of the stress history logged as a metric: MLflow's SQLite store takes
@@ -222,7 +222,8 @@ class Tracker:
     def __init__(self, uri: str | None = None, create: bool = True):
         self.uri = resolve_uri(uri)
         self.code = code_identity()
-        database = Path(self.uri[len("sqlite:///"):]) if self.uri.startswith("sqlite:///") else None
+        path = _database(self.uri)
+        database = Path(path) if path else None
         if database is not None and not create and not database.is_file():
             raise MpeError(f"no tracking store at {database} (run a sweep first, or pass "
                            "--tracking-uri / set MLFLOW_TRACKING_URI)")

@@ -82,7 +82,6 @@ _DENSE_Y = 4_000_000  # entries of the Schur factor Y below which it is made den
 # and dino observations lie beyond 26-58 sigmas of a pinhole fit), while a
 # wrong match is typically hundreds of sigmas away.
 OUTLIER_THRESHOLD = 20.0
-# Rayleigh: the median of ||r|| for isotropic Gaussian 2D residuals of std sigma.
 # Weak geometry: a point whose kept rays all meet under MIN_RAY_ANGLE degrees
 # (COLMAP's triangulator refuses these too), or that lies farther from the
 # cloud's median than FAR_FACTOR times the median distance of the cloud's
@@ -91,6 +90,7 @@ OUTLIER_THRESHOLD = 20.0
 # fraction of a degree apart, stood 7e8 away and set the whole cloud's mean CD.
 MIN_RAY_ANGLE = 1.5
 FAR_FACTOR = 100.0
+# Rayleigh: the median of ||r|| for isotropic Gaussian 2D residuals of std sigma.
 _RAYLEIGH_MEDIAN = np.sqrt(2 * np.log(2))
 AUTO_RATIO = 0.8  # camera="auto" keeps the pinhole below this share of the weak median residual
 DISAGREE_RATIO = 0.5  # another model this much better is said
@@ -247,9 +247,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
 def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, solve) -> BundleResult:
     """The result of a fit: weak points out of it, points seen once placed on
     their rays, every residual."""
-    fit, narrow, far = _without_weak(fit, tracks, dropped, solve)
+    fit, placed, narrow, far = _without_weak(fit, tracks, dropped, solve)
     X, cameras, history, converged = fit
-    placed = _placed(tracks, _informative(tracks, ~dropped))
     # a narrow point keeps the adjustment's depth (its best guess, and its rays'
     # fit); a far one has none worth keeping: it goes to the cloud's depth
     X = _place_unplaced(X, cameras, tracks, placed & ~far, ~dropped)
@@ -277,16 +276,17 @@ def _without_weak(fit, tracks, dropped, solve):
     """The fit solved again without the points of weak geometry, as COLMAP
     filters its points before its last adjustment: their rays, nearly
     parallel, pull on the cameras for no depth (a point 7e8 away among COLMAP's
-    250 photos). Returns the fit and the ``narrow`` and ``far`` masks."""
+    250 photos). Returns the fit, the points placed before, and the ``narrow``
+    and ``far`` masks."""
     X, cameras = fit[:2]
     placed = _placed(tracks, _informative(tracks, ~dropped))
     narrow, far = weak_geometry(X, cameras, tracks, ~dropped, placed)
     weak = narrow | far
     if not weak.any() or weak.sum() > placed.sum() / 2:  # then no depth is fixed: said, not solved
-        return fit, narrow, far
-    strong = _informative(tracks, ~dropped & ~(narrow | far)[tracks.point])
+        return fit, placed, narrow, far
+    strong = _informative(tracks, ~dropped & ~weak[tracks.point])
     X, cameras, history, converged = adjust(X, cameras, tracks.subset(strong), **solve)
-    return (X, cameras, np.concatenate([fit[2], history[1:]]), converged), narrow, far
+    return (X, cameras, np.concatenate([fit[2], history[1:]]), converged), placed, narrow, far
 
 
 def weak_geometry(X, cameras: Cameras, tracks: Tracks, kept: np.ndarray,
@@ -301,10 +301,16 @@ def weak_geometry(X, cameras: Cameras, tracks: Tracks, kept: np.ndarray,
     rays, lines = ray_directions(cameras.projection_matrices(), X, tracks.view[rows],
                                  tracks.point[rows])
     narrow = widest_angles(rays, tracks.point[rows], tracks.n_points, lines) < MIN_RAY_ANGLE
-    centre = np.median(X[placed], axis=0)
-    distance = np.linalg.norm(X - centre, axis=1)
-    far = ~(distance <= FAR_FACTOR * np.median(distance[placed]))  # a nan is far too
+    far = ~(median_radii(X, placed) <= FAR_FACTOR)  # a nan is far too
     return placed & narrow, placed & far
+
+
+def median_radii(X: np.ndarray, among: np.ndarray | None = None) -> np.ndarray:
+    """(N,) each point's distance from the median of the points ``among``, in
+    median distances of those points to it: the unit of ``FAR_FACTOR``."""
+    among = np.ones(len(X), dtype=bool) if among is None else among
+    distance = np.linalg.norm(X - np.median(X[among], axis=0), axis=1)
+    return distance / max(float(np.median(distance[among])), 1e-300)
 
 
 def _say_if_depth_is_free(X, placed, weak, camera) -> None:
