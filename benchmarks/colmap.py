@@ -18,8 +18,8 @@ import argparse
 import json
 import time
 
-from mpe3d.harness.config import make_config
-from mpe3d.harness.execute import run
+from mpe3d.harness.experiment.config import make_config
+from mpe3d.harness.experiment.execute import run
 
 PAPER = {"colmap_250": {"cd_x100": 23.1, "emd_x100": 19.7}, "3dmpe_4": {"cd_x100": 5.79, "emd_x100": 5.09}}
 KEPT = ("registered_images", "colmap_points", "colmap_models", "cd_x100", "emd_x100", "render_s",

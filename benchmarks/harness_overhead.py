@@ -20,9 +20,8 @@ import tempfile
 import time
 from pathlib import Path
 
-
-from mpe3d.harness.runner import plan_sweeps, run_plans
 from mpe3d import Tracker, load_sweep
+from mpe3d.harness.runner import plan_sweeps, run_plans
 
 TARGET_S = 0.15
 SWEEP = """

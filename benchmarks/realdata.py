@@ -96,8 +96,8 @@ def wrong_matches(frame: pd.DataFrame, share: float, seed: int = 0):
 
 def tracks_of(frame: pd.DataFrame):
     """The solver's tracks of ``frame`` and, for each row of it, its observation index."""
-    from mpe3d.harness.reconstruct import observations_from
-    from mpe3d.solvers import bundle
+    from mpe3d.harness.userdata.reconstruct import observations_from
+    from mpe3d.solvers.sfm import bundle
 
     obs, _ = observations_from(views_of(frame))
     stacked = frame.reset_index(drop=True).sort_values("view", kind="stable").index.to_numpy()
@@ -109,7 +109,7 @@ def tracks_of(frame: pd.DataFrame):
 def outlier_line(name: str, frame: pd.DataFrame, share: float, seeds: int) -> dict:
     """The default fit (camera='auto') of clean and of corrupted tracks, the
     latter scored on the observations left clean, over ``seeds`` corruptions."""
-    from mpe3d.solvers import bundle
+    from mpe3d.solvers.sfm import bundle
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -125,7 +125,7 @@ def outlier_line(name: str, frame: pd.DataFrame, share: float, seeds: int) -> di
 
 
 def _corrupted_run(frame, share, seed, clean_rms):
-    from mpe3d.solvers import bundle
+    from mpe3d.solvers.sfm import bundle
 
     corrupted, changed = wrong_matches(frame, share, seed)
     tracks, index = tracks_of(corrupted)

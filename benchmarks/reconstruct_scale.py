@@ -20,11 +20,9 @@ import json
 import resource
 import time
 
-
-from mpe3d import make_config
-from mpe3d.harness.metrics import roa
-from mpe3d.harness.observe import build_scene, observe, seed_streams
-from mpe3d import reconstruct
+from mpe3d import make_config, reconstruct
+from mpe3d.harness.scene.metrics import roa
+from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
 
 
 def case(points: int, views: int, setting: str, shape: str, objective: str) -> dict:

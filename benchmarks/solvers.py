@@ -29,10 +29,9 @@ from collections import defaultdict
 
 import numpy as np
 
-
 from mpe3d import make_config, solvers
-from mpe3d.harness.metrics import evaluate
-from mpe3d.harness.observe import build_scene, observe, seed_streams
+from mpe3d.harness.scene.metrics import evaluate
+from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
 
 NOISE = ["none", "distance:0.2:0.05", "distance:0.2:0.1", "distance:0.4:0.05", "distance:0.4:0.1",
          "correspondence:0.2:0.05", "correspondence:0.2:0.1", "correspondence:0.4:0.05",

@@ -32,10 +32,10 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from mpe3d import make_config
-from mpe3d.harness.execute import BLAS_THREADS
-from mpe3d.harness.observe import build_scene, observe, seed_streams
+from mpe3d.harness.experiment.execute import BLAS_THREADS
+from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
 from mpe3d.solvers.sgd import random_projections
-from mpe3d.solvers.stress import LOSSES, Stress
+from mpe3d.solvers.stress import STRESS_LOSSES, Stress
 
 
 def per_call(stress: Stress, X, P, repeats: int):
@@ -105,8 +105,8 @@ def vector_instructions() -> dict:
 
     kernels.warm()
     out = {}
-    for loss, cached in zip(LOSSES, kernels._DENSE):
-        fresh = njit(nogil=True, fastmath=kernels._LANES)(cached.py_func)  # numba shows no cached code
+    for loss, cached in zip(STRESS_LOSSES, kernels.DENSE_KERNELS):
+        fresh = njit(nogil=True, fastmath=kernels.FASTMATH_FLAGS)(cached.py_func)  # numba shows no cached code
         asm = ""
         for signature in cached.signatures:
             fresh.compile(signature)
@@ -134,7 +134,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, nargs="+", default=[512, 1024, 2048, 4096])
     parser.add_argument("--views", type=int, nargs="+", default=[4, 5, 8])
-    parser.add_argument("--losses", nargs="+", choices=LOSSES, default=list(LOSSES))
+    parser.add_argument("--losses", nargs="+", choices=STRESS_LOSSES, default=list(STRESS_LOSSES))
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--side-by-side", type=int, default=1, metavar="COPIES",

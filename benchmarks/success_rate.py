@@ -16,10 +16,8 @@ import json
 import statistics
 import sys
 
-
-from mpe3d import make_config
-from mpe3d import run
-from mpe3d.harness.shapes import shape_names
+from mpe3d import make_config, run
+from mpe3d.harness.scene.shapes import shape_names
 
 
 def main(argv=None) -> int:

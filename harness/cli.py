@@ -12,11 +12,12 @@ import sys
 import time
 from pathlib import Path
 
+from mpe3d.errors import MpeError
+
 # Only light modules at the top: `mpe3d --help` must not pay for numpy,
 # scikit-learn or MLflow. Each command imports what it runs.
-from .config import BACKENDS, config_from_file, describe_keys, make_config, parse_override
-from .shutdown import EXIT_CODE, Shutdown
-from ..errors import MpeError
+from mpe3d.harness.experiment.config import BACKENDS, config_from_file, describe_keys, make_config, parse_override
+from mpe3d.harness.shutdown import EXIT_CODE, Shutdown
 
 RESUME_LINE = "mpe3d: interrupted; every run logged so far is kept: run the same command to resume"
 
@@ -28,42 +29,14 @@ class _Parser(argparse.ArgumentParser):
         raise MpeError(message)
 
 
-def _number(value) -> str:
-    return f"{value:.4g}" if isinstance(value, float) else str(value)
-
-
-def _print_colmap_summary(summary: dict) -> None:
-    cfg, images = summary["config"], summary["config"]["images"]
-    print(f"shape {cfg['shape']}, {images['count']} photos of {images['size']} px, COLMAP "
-          f"against N={cfg['points']} surface samples, seed {cfg['seed']}")
-    print(summary["termination"])
-    if "cd_x100" in summary:
-        print(f"cd_x100={_number(summary['cd_x100'])}  emd_x100={_number(summary['emd_x100'])}  "
-              f"reprojection {summary['reprojection_px']:.3f} px")
-    tracks = [f"{k}={_number(summary[k])}" for k in summary if k.startswith("tracks_")
-              and k.endswith(("ge2", "ge3", "triangulated", "cd_x100"))]
-    print("COLMAP's tracks: " + "  ".join(tracks))
-    print(f"render {summary['render_s']:.1f} s, COLMAP {summary['runtime_s']:.1f} s, "
-          f"total {summary['wall_s']:.1f} s")
-
-
 def _print_summary(summary: dict) -> None:
-    cfg = summary["config"]
-    if cfg.get("pipeline") == "colmap":
-        return _print_colmap_summary(summary)
-    print(f"shape {cfg['shape']}, N={cfg['points']}, K={cfg['views']}, "
-          f"visibility {cfg['visibility']['mode']}, projections {cfg['projections']}, "
-          f"solver {cfg['solver']['name']} (init {cfg['init']}), seed {cfg['seed']}")
-    print(f"visible per view: {summary['visible_per_view']}")
-    print("  ".join(f"{k}={_number(summary[k])}" for k in
-                    ("cd", "cd_mean", "emd", "emd_mean", "roa")))
-    print(f"stress={_number(summary['stress'])}  iterations={summary['iterations']} "
-          f"({summary['termination']})  solver {summary['runtime_s']:.3f} s, "
-          f"total {summary['wall_s']:.3f} s")
+    from mpe3d.harness.experiment.execute import PIPELINES
+
+    print("\n".join(PIPELINES[summary["config"]["pipeline"]].describe(summary)))
 
 
 def cmd_run(args) -> int:
-    from .execute import run, write_outputs
+    from mpe3d.harness.experiment.execute import run, write_outputs
 
     overrides = dict(parse_override(item) for item in args.overrides)
     config = config_from_file(args.config, overrides, args.max_yaml_mb) if args.config \
@@ -88,7 +61,7 @@ def cmd_run(args) -> int:
 
 
 def cmd_shapes(args) -> int:
-    from .shapes import PROCEDURAL, bundled_manifest
+    from mpe3d.harness.scene.shapes import PROCEDURAL, bundled_manifest
 
     for name, entry in bundled_manifest().items():
         print(f"{name:<9} stands in for {entry['paper_category']:<9} "
@@ -145,16 +118,20 @@ def _check_parallel(args) -> str:
 
 def run_sweeps(sweeps, args, tracker, summaries: bool = True) -> tuple[list, int]:
     """:func:`runner.run_sweeps` with the command line's flags, printing as it goes."""
-    from .runner import run_sweeps as run
+    from mpe3d.harness.runner import run_sweeps as run
 
+    summarise = None
+    if summaries and not args.no_artifacts:  # the report's drawing is paid for only here
+        from mpe3d.reports.summary import log_sweep_summary as summarise
     reporter = None
     if not args.quiet:
-        from .progress import RichReporter
+        from mpe3d.harness.progress import RichReporter
         reporter = RichReporter()
     plans, code = run(sweeps, tracker, jobs=args.jobs, backend=_check_parallel(args),
                       scheduler=args.scheduler, artifacts=not args.no_artifacts,
                       rerun_failed=args.rerun_failed, force=args.force, reuse_stale=args.reuse_stale,
-                      reporter=reporter, say=lambda text: _say(text, args.quiet), summaries=summaries,
+                      reporter=reporter, say=lambda text: _say(text, args.quiet),
+                      summarise=summarise,
                       warn=lambda text: print(f"mpe3d: {text}", file=sys.stderr, flush=True),
                       stop=args.shutdown)
     return plans, code
@@ -170,7 +147,7 @@ def _split_overrides(tokens: list[str]) -> tuple[list[str], list[str]]:
 
 
 def cmd_sweep(args) -> int:
-    from .sweep import load_sweep
+    from mpe3d.harness.experiment.sweep import load_sweep
 
     files, overrides = _split_overrides(args.files)
     sweeps = [load_sweep(path, args.scale, args.max_runs, args.max_yaml_mb, overrides)
@@ -178,7 +155,7 @@ def cmd_sweep(args) -> int:
     _check_parallel(args)
     if args.dry_run:
         return _dry_run(sweeps)
-    from .tracking import Tracker
+    from mpe3d.harness.tracking.store import Tracker
 
     with args.shutdown.deferred():  # a store is never left half-made, a result never half-logged
         tracker = Tracker(args.tracking_uri)
@@ -191,13 +168,12 @@ RUNS_METRICS = ("cd_x100", "emd_x100", "roa", "runtime_s")  # the paper's, and t
 ERROR_WIDTH = 60  # a Markdown table's error column is cut here; csv and json keep it whole
 
 
-def _runs_table(frame, all_columns: bool):
+def runs_table(frame, all_columns: bool):
     """What `mpe3d runs` shows: by default the config keys that vary within the
     experiment (a solver option only if it varies within one solver), status,
     the main metrics and the code; with ``all_columns`` every param, metric and tag."""
+    from mpe3d.harness.experiment.config import KEYS
     from mpe3d.reports.load import varying_columns
-
-    from .config import KEYS
 
     params = [c for c in frame.columns if c in KEYS or c.startswith("solver.")]
     tags = ["config_hash", "code", "run_id", "start_time", "error"]
@@ -215,7 +191,7 @@ def _runs_table(frame, all_columns: bool):
         columns={"solver.name": "solver"})
 
 
-def _print_runs(table, form: str) -> None:
+def print_runs(table, form: str) -> None:
     """``text``: aligned columns for a terminal; ``md``: a Markdown table;
     ``csv`` and ``json`` (one record per run): every digit, for a file or pandas."""
     if form == "csv":
@@ -267,7 +243,7 @@ def _cut(text: str, width: int) -> str:
 
 def _note_journal(tracker) -> None:
     """Say so when computed results still wait in the journal for this store."""
-    from .journal import Journal
+    from mpe3d.harness.tracking.journal import Journal
 
     journal = Journal()
     waiting = journal.pending(tracker.uri)
@@ -277,7 +253,7 @@ def _note_journal(tracker) -> None:
 
 
 def cmd_runs(args) -> int:
-    from .tracking import Tracker
+    from mpe3d.harness.tracking.store import Tracker
 
     tracker = Tracker(args.tracking_uri, create=False)
     _note_journal(tracker)
@@ -289,7 +265,7 @@ def cmd_runs(args) -> int:
     if len(codes) > 1:
         print(f"mpe3d: note: these runs were computed by {len(codes)} versions of the code "
               f"(column code); this code is {tracker.code}", file=sys.stderr)
-    _print_runs(_runs_table(frame, args.all_columns), args.format)
+    print_runs(runs_table(frame, args.all_columns), args.format)
     return 0
 
 
@@ -308,9 +284,8 @@ def _full_runs_per_group(sweep) -> int | None:
     """Runs per compared setting when ``sweep`` runs at its full scale (None: it does)."""
     import pandas as pd
 
+    from mpe3d.harness.experiment.sweep import FULL, load_sweep
     from mpe3d.reports.claims import runs_per_group
-
-    from .sweep import FULL, load_sweep
 
     if sweep.scale == FULL:
         return None
@@ -332,13 +307,12 @@ def _wrote(report) -> None:
 
 
 def cmd_report(args) -> int:
+    from mpe3d.harness.tracking.store import Tracker
     from mpe3d.reports import paper
     from mpe3d.reports.load import finished, runs
 
-    from .tracking import Tracker
-
     if args.sweep:  # the file first: its errors are the user's to fix, whatever the store
-        from .sweep import load_sweep
+        from mpe3d.harness.experiment.sweep import load_sweep
 
         sweep = load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb, args.overrides)
     tracker = Tracker(args.tracking_uri, create=False)
@@ -372,7 +346,7 @@ def _paper_sweep_files():
 
 
 def _load_paper_sweep(path, scale="full", overrides=()):
-    from .sweep import load_sweep
+    from mpe3d.harness.experiment.sweep import load_sweep
 
     return load_sweep(path, scale, overrides=list(overrides))
 
@@ -389,8 +363,8 @@ def _write_report(out: Path, sections, title, facts):
 def cmd_reproduce(args) -> int:
     import platform
 
-    from .identity import git_commit
-    from .tracking import Tracker
+    from mpe3d.harness.tracking.identity import git_commit
+    from mpe3d.harness.tracking.store import Tracker
 
     start = time.time()
     commit = git_commit()
@@ -429,8 +403,8 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from .formats import check_ids_fit, check_output, write_result
-    from .reconstruct import prepare, solve
+    from mpe3d.harness.userdata.formats import check_ids_fit, check_output, write_result
+    from mpe3d.harness.userdata.reconstruct import prepare, solve
 
     if args.seed < 0:
         raise MpeError(f"--seed: expected an integer >= 0, got {args.seed}")
@@ -448,12 +422,12 @@ def cmd_reconstruct(args) -> int:
     result = solve(problem)
     extra = {"input": str(args.input), "output": str(model or out)}
     if model:
-        from .colmap import write_model_folder
+        from mpe3d.harness.userdata.colmap_model import write_model_folder
 
-        result.report["warnings"] += write_model_folder(model, problem, result)
+        result.warnings.extend(write_model_folder(model, problem, result))
     write_result(out, result, report, extra)
     print(_reconstruct_summary(result.report))
-    for message in result.report["warnings"]:
+    for message in result.warnings:
         print(f"mpe3d: warning: {message}", file=sys.stderr)
     print(f"wrote {model or out}" + (f" and {report}" if report else ""))
     return 0
@@ -462,7 +436,7 @@ def cmd_reconstruct(args) -> int:
 def _model_out(text: str) -> Path | None:
     """The folder of a COLMAP model when ``--out`` names one (no file suffix),
     checked as :func:`check_output` checks a file."""
-    from .colmap import check_model_out
+    from mpe3d.harness.userdata.colmap_model import check_model_out
 
     path = Path(text)
     if text.endswith(("/", os.sep)) or not path.suffix:
@@ -497,7 +471,7 @@ def cmd_ui(args) -> int:
     import socket
     import subprocess
 
-    from .tracking import artifact_root, resolve_uri
+    from mpe3d.harness.tracking.store import artifact_root, resolve_uri
 
     uri = resolve_uri(args.tracking_uri)
     if uri.startswith(("http://", "https://")):
@@ -565,14 +539,14 @@ def _add_run_options(parser) -> None:
 
 
 def _add_yaml_limit(parser) -> None:
-    from .limits import MAX_YAML_MB
+    from mpe3d.harness.experiment.limits import MAX_YAML_MB
 
     parser.add_argument("--max-yaml-mb", type=float, default=MAX_YAML_MB, metavar="MB",
                         help=f"refuse YAML files larger than this (default {MAX_YAML_MB:g} MiB)")
 
 
 def _add_sweep_limits(parser) -> None:
-    from .limits import MAX_RUNS
+    from mpe3d.harness.experiment.limits import MAX_RUNS
 
     parser.add_argument("--max-runs", type=int, default=MAX_RUNS, metavar="N",
                         help=f"refuse a sweep that expands to more runs (default {MAX_RUNS:,})")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from .runner import Reporter
+from mpe3d.harness.runner import Reporter
 
 
 class RichReporter(Reporter):
@@ -26,8 +26,14 @@ class RichReporter(Reporter):
         return text
 
     def start(self, total: int, skipped: int) -> None:
-        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn,
-                                   TimeElapsedColumn, TimeRemainingColumn)
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
 
         self.skipped = skipped
         self.progress = Progress(TextColumn("runs"), BarColumn(), MofNCompleteColumn(),

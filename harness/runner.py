@@ -1,14 +1,14 @@
 """Run sweeps: skip what is tracked, claim each run before computing it, log as results arrive.
 
 A run of a config is reused only when the code that computed it is the
-running code (:mod:`mpe3d.harness.identity`). Every config this sweep computes is
+running code (:mod:`mpe3d.harness.tracking.identity`). Every config this sweep computes is
 first *claimed*: a RUNNING child run in the store, owned by this process and
 kept alive by a heartbeat on the sweep's parent run. Another sweep that meets
 the claim waits for it instead of computing the config again, and a claim
 whose owner died is closed as KILLED and computed anew.
 
 Workers (joblib's loky processes, dask workers, or one thread for
-``--jobs 1``) compute whole runs and return :class:`~mpe3d.harness.execute.RunRecord`
+``--jobs 1``) compute whole runs and return :class:`~mpe3d.harness.experiment.execute.RunRecord`
 objects. The parent writes each one to the local journal, then logs it to
 MLflow, then drops it from the journal: an interrupt, a crash or a store
 outage never loses a computed result, and the next invocation replays what
@@ -30,14 +30,15 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
-from .config import BACKENDS, RunConfig
-from ..errors import DiskFull, MpeError, StoreError
-from .execute import RunRecord, failed_record, run_record
-from .files import SpaceMeter, human_bytes, same_device
-from .journal import Journal
-from .ownership import Heartbeat, Owner
-from .shutdown import EXIT_CODE, GRACE_S, Shutdown, kill_descendants
-from .sweep import Sweep
+from mpe3d.errors import DiskFull, MpeError, StoreError
+from mpe3d.harness.experiment.config import BACKENDS, RunConfig
+from mpe3d.harness.experiment.execute import failed_record, run_record
+from mpe3d.harness.experiment.sweep import Sweep
+from mpe3d.harness.files import SpaceMeter, human_bytes, same_device
+from mpe3d.harness.shutdown import EXIT_CODE, GRACE_S, Shutdown, kill_descendants
+from mpe3d.harness.tracking.journal import Journal
+from mpe3d.harness.tracking.ownership import Heartbeat, Owner
+from mpe3d.harness.tracking.records import RunRecord
 
 POLL_S = 2.0  # how often a sweep looks again at a claim of another sweep it waits for
 DRAIN_S = 10.0  # after the store fails: how long runs in flight may still finish
@@ -584,7 +585,7 @@ def _quiet(text: str) -> None:
 def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "loky",
                scheduler: str | None = None, artifacts: bool = True, rerun_failed: bool = False,
                force: bool = False, reuse_stale: bool = False, reporter: Reporter | None = None,
-               say=_quiet, warn=_quiet, summaries: bool = True,
+               say=_quiet, warn=_quiet, summarise=None,
                stop: Shutdown | None = None) -> tuple[list[Plan], int]:
     """Replay the journal, plan ``sweeps`` against ``tracker``, run what is
     missing and summarise; ``say`` and ``warn`` receive the lines to show.
@@ -593,9 +594,9 @@ def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "
     stopped (``stop`` requested, or a KeyboardInterrupt; every run logged so
     far is kept, and the caller says so). A store
     failure raises :class:`StoreError` (exit 3) after the computed results are
-    journaled. With ``artifacts`` and ``summaries``, each parent run also gets
-    its sweep's summary table and figures (``reproduce-paper`` logs its own
-    report's sections instead, drawn once).
+    journaled. With ``artifacts`` and ``summarise(tracker, sweep, parent_id)``
+    (e.g. :func:`mpe3d.reports.summary.log_sweep_summary`), each parent run
+    also gets its sweep's summary; the runner never draws reports itself.
     """
     stop = stop or Shutdown()  # not installed: never requested
     plans: list[Plan] = []
@@ -607,11 +608,11 @@ def run_sweeps(sweeps: list[Sweep], tracker, *, jobs: int = -1, backend: str = "
         start = time.time()
         run_plans(plans, tracker, jobs=jobs, backend=backend, scheduler=scheduler,
                   artifacts=artifacts, reporter=reporter, stop=stop)
-        if artifacts and summaries:
+        if artifacts and summarise is not None:
             for plan in plans:
                 if plan.parent_id:
                     stop.check()
-                    _log_summary(tracker, plan, warn)
+                    _log_summary(summarise, tracker, plan, warn)
     except KeyboardInterrupt:
         return plans, EXIT_CODE
     _say_outcomes(plans, say, warn)
@@ -650,24 +651,11 @@ def _say_outcomes(plans: list[Plan], say, warn) -> None:
                  f"(`mpe3d runs '{plan.sweep.name}'` lists them)")
 
 
-def _log_summary(tracker, plan: Plan, warn) -> None:
-    """The sweep's own report (summary table and figures) on its parent run,
-    where MLflow's UI shows it; a failure to draw it costs no run."""
-    import tempfile
-    from pathlib import Path
-
-    from mpe3d.reports import paper
-    from mpe3d.reports.load import runs
-
+def _log_summary(summarise, tracker, plan: Plan, warn) -> None:
+    """``summarise`` the sweep on its parent run, where MLflow's UI shows it; a
+    failure to draw it costs no run."""
     try:
-        frame = runs(tracker, plan.sweep.name, hashes=[c.hash() for c in plan.sweep.runs])
-        section = paper.Section(plan.sweep.name, frame, plan.sweep.description,
-                                f"{plan.sweep.path.name} --scale {plan.sweep.scale}",
-                                planned=len(plan.sweep.runs), varying=plan.sweep.varying)
-        with tempfile.TemporaryDirectory(prefix="mpe3d-summary-") as folder:
-            paper.write(Path(folder), [section], f"mpe3d sweep: {plan.sweep.name}", claims=False,
-                        pdf=False)
-            tracker.log_parent_artifacts(plan.parent_id, folder)
+        summarise(tracker, plan.sweep, plan.parent_id)
     except StoreError:
         raise
     except Exception as exc:  # noqa: BLE001 - the runs are logged; the summary is a bonus

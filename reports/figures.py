@@ -16,7 +16,7 @@ import matplotlib.ticker  # noqa: E402
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from .load import CD, METRIC_LABELS  # noqa: E402
+from mpe3d.reports.load import CD, METRIC_LABELS  # noqa: E402
 
 MARKERS = {"baseline (MDS)": "s", "baseline (authors': zero-filled average)": "s", "3DMPE (paper)": "o",
            "ours (refine)": "^", "ours (factorize)": "v"}

@@ -6,7 +6,7 @@ from importlib.resources import files
 
 import pandas as pd
 
-from mpe3d.harness.config import KEYS
+from mpe3d.harness.experiment.config import KEYS
 
 # How each solver is named in tables and figures: the paper's method is
 # "3DMPE (paper)", our exact solver is "ours (refine)".

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pandas as pd
 
-from .load import CD, EMD, METRIC_LABELS, SETTING_LABELS
+from mpe3d.reports.load import CD, EMD, METRIC_LABELS, SETTING_LABELS
 
 PUBLISHED_NOTE = "published, ShapeNet"
 # The paper's column order: learning-based methods, then its baseline and 3DMPE.
@@ -24,7 +24,7 @@ def summary(frame: pd.DataFrame, by: list[str], metrics: list[str]) -> pd.DataFr
 
 def category_of(shape: str) -> str:
     """The paper category a bundled shape stands in for (guitar -> rifle)."""
-    from mpe3d.harness.shapes import bundled_manifest
+    from mpe3d.harness.scene.shapes import bundled_manifest
 
     entry = bundled_manifest().get(shape)
     return entry["paper_category"] if entry else shape

@@ -1,4 +1,4 @@
-"""Rebuild the bundled stand-in meshes in ``harness/assets/meshes``.
+"""Rebuild the bundled stand-in meshes in ``harness/scene/assets/meshes``.
 
 The paper evaluates on ShapeNet and Pix3D, which cannot be redistributed. We
 ship one CC0 mesh per paper category instead, taken from the BlendSwap-CC-0
@@ -82,7 +82,7 @@ def write_credits(manifest: list[dict], out: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--source", type=Path, default=Path("../shared/meshes/cc0"))
-    parser.add_argument("--out", type=Path, default=Path("harness/assets/meshes"))
+    parser.add_argument("--out", type=Path, default=Path("harness/scene/assets/meshes"))
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     manifest = build(args.source, args.out)

@@ -30,7 +30,6 @@ import zipfile
 from collections import Counter
 from pathlib import Path
 
-
 import numpy as np
 
 MPE3D = [str(Path(sys.executable).parent / "mpe3d")]
@@ -290,14 +289,14 @@ def _audit(uri, experiment, hashes):
 
 
 def _hashes(path):
-    from mpe3d.harness.sweep import load_sweep
+    from mpe3d.harness.experiment.sweep import load_sweep
 
     return [c.hash() for c in load_sweep(path).runs]
 
 
 def kill_trials(n: int, rng: random.Random) -> dict:
     outcomes = []
-    for i in range(n):
+    for _ in range(n):
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(tmp)
             path = folder / "k.yaml"
@@ -327,7 +326,7 @@ def kill_trials(n: int, rng: random.Random) -> dict:
 
 def concurrent_trials(n: int) -> dict:
     outcomes = []
-    for i in range(n):
+    for _ in range(n):
         with tempfile.TemporaryDirectory() as tmp:
             folder = Path(tmp)
             path = folder / "c.yaml"

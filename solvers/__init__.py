@@ -1,8 +1,18 @@
 """Solvers for the 3DMPE stress, behind one interface (see :mod:`mpe3d.solvers.base`)."""
 
-from .base import (Observations, Reconstruction, SOLVERS, View, check_observations,
-                   get_solver, register, solve, solver_options, validate_options)
-from . import baseline, factorize, refine, sgd  # noqa: F401  (registration)
+from mpe3d.solvers import baseline, factorize, refine, sgd  # noqa: F401  (registration)
+from mpe3d.solvers.base import (
+                   SOLVERS,
+                   Observations,
+                   Reconstruction,
+                   View,
+                   check_observations,
+                   get_solver,
+                   register,
+                   solve,
+                   solver_options,
+                   validate_options,
+)
 
 __all__ = ["Observations", "Reconstruction", "SOLVERS", "View", "check_observations",
            "get_solver", "register", "solve", "solver_options", "validate_options"]

@@ -25,8 +25,7 @@ import numpy as np
 from scipy.spatial.distance import cdist
 
 from mpe3d.errors import MpeError, coerce, suggest
-
-from .linalg import classical_mds
+from mpe3d.solvers.linalg import classical_mds
 
 _RESERVED = ("observations", "init", "random_state")
 INITS = ("smart", "random")
@@ -302,7 +301,7 @@ def solve(name: str, observations: Observations, *, init: str = "smart",
     rng = np.random.default_rng(random_state)
     for module in spec.imports:  # outside the timed region
         importlib.import_module(module)
-    from . import kernels
+    from mpe3d.solvers import kernels
 
     kernels.warm()  # compiled, or loaded from numba's disk cache, before the clock too
     start = time.perf_counter()

@@ -17,8 +17,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from mpe3d.errors import MpeError
-
-from .base import Observations
+from mpe3d.solvers.base import Observations
 
 # Shared points that tie two views together: an O(2) transform and a shift per
 # view (fixed), or an affine camera (variable, 4 points not all coplanar).

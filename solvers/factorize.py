@@ -24,27 +24,19 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import least_squares
 
-from .base import Interval, Observations, Reconstruction, register
-from .degenerate import check_geometry, warn
-from .linalg import elongation, gram_by_group, matvec_by_group, pinv_psd
-from .stress import Stress, project_rows
-
-
-def _stacked(obs: Observations, images: list[np.ndarray]):
-    """Every observation (view k, point id, 2D point) as flat arrays."""
-    view = np.concatenate([np.full(v.size, k) for k, v in enumerate(obs.views)])
-    point = np.concatenate([v.ids for v in obs.views])
-    z = np.concatenate(images)
-    return view, point, z
-
-
-def _sum_by(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
-    """Sum rows of ``values`` (T x ...) into ``size`` bins by ``index``."""
-    flat = values.reshape(len(values), -1)
-    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=size)
-                    for c in range(flat.shape[1])], axis=1)
-    return out.reshape((size,) + values.shape[1:])
-
+from mpe3d.solvers.base import Interval, Observations, Reconstruction, register
+from mpe3d.solvers.degenerate import check_geometry, warn
+from mpe3d.solvers.linalg import (
+    elongation,
+    fit_views,
+    gram_by_group,
+    matvec_by_group,
+    pinv_psd,
+    rows_of,
+    stacked,
+    sum_by,
+)
+from mpe3d.solvers.stress import Stress, project_rows
 
 # Points per block of the fixed setting's elimination: keeps each (points, 3, 4K)
 # block near 50 MB at K = 8, so a million points never hold N x 3 x 4K at once.
@@ -66,7 +58,7 @@ class _FixedLinearSystem:
         self.K, self.N, self.P = obs.n_views, obs.n_points, P
         self.view, self.point, self.z = view, point, z
         self.PtP = np.einsum("kai,kaj->kij", P, P)
-        self.M_inv = pinv_psd(_sum_by(point, self.PtP[view], self.N))  # < 2 views: min-norm
+        self.M_inv = pinv_psd(sum_by(point, self.PtP[view], self.N))  # < 2 views: min-norm
         self.order = np.argsort(point, kind="stable")  # observations grouped by point block
         self.bounds = np.searchsorted(point[self.order],
                                       np.arange(0, self.N + _POINT_BLOCK, _POINT_BLOCK))
@@ -169,28 +161,18 @@ def factorize_fixed(obs: Observations, images: list[np.ndarray]) -> tuple[np.nda
     """X and the per-view O(2) transforms H_k, fixed projections (step 2)."""
     K = obs.n_views
     P = np.asarray(obs.projections, dtype=float)
-    view, point, z = _stacked(obs, images)
+    view, point, z = stacked(obs, images)
     system = _FixedLinearSystem(obs, view, point, z, P)  # X as a linear function of vec(H)
     Q = system.quadratic_form()
     H = _orthogonal_transforms((Q + Q.T) / 2, K)
     return system.points(H.transpose(0, 2, 1).reshape(-1)), H
 
 
-def _fit_views(X, view, point, z, K, rows):
-    """[L_k; t_k^T] from [x_i, 1] -> z_t over the observations in ``rows``: one 4x4
-    least-squares system per view (views with no such rows come back zero)."""
-    A = np.concatenate([X[point[rows]], np.ones((rows.sum(), 1))], axis=1)
-    AtA = gram_by_group(A, view[rows], K)
-    Atz = gram_by_group(A, view[rows], K, z[rows])
-    Lt = np.einsum("kab,kbc->kac", pinv_psd(AtA), Atz)  # (K, 4, 2)
-    return Lt[:, :3, :], Lt[:, 3, :]
-
-
 def _fit_points(L, t, view, point, z, N, rows):
     """(sum L_k L_k^T) x_i = sum L_k (z_t - t_k) over ``rows``: a 3x3 system per point."""
     v, p = view[rows], point[rows]
-    lhs = _sum_by(p, np.einsum("kab,kcb->kac", L, L)[v], N)  # L_k L_k^T: once per view
-    rhs = _sum_by(p, matvec_by_group(L, v, z[rows] - t[v]), N)
+    lhs = sum_by(p, np.einsum("kab,kcb->kac", L, L)[v], N)  # L_k L_k^T: once per view
+    rhs = sum_by(p, matvec_by_group(L, v, z[rows] - t[v]), N)
     return np.einsum("nij,nj->ni", pinv_psd(lhs), rhs)
 
 
@@ -210,7 +192,7 @@ def _affine_start(view, point, z, N, K):
     np.fill_diagonal(shared, -1)
     a, b = np.unravel_index(np.argmax(shared), shared.shape)
     common = np.flatnonzero(alpha[a] & alpha[b])
-    W = np.hstack([_rows_of(point[view == k], z[view == k], common) for k in (a, b)])
+    W = np.hstack([rows_of(point[view == k], z[view == k], common) for k in (a, b)])
     W = W - W.mean(axis=0)
     U, S, Vt = np.linalg.svd(W, full_matrices=False)
     X = np.zeros((N, 3))
@@ -220,7 +202,7 @@ def _affine_start(view, point, z, N, K):
     registered = np.zeros(K, dtype=bool)
     registered[[a, b]] = True
     while True:
-        L, t = _fit_views(X, view, point, z, K, placed[point])
+        L, t = fit_views(X, view, point, z, K, placed[point])
         seen = np.bincount(view[placed[point]], minlength=K)
         registered |= seen >= 4
         in_registered = registered[view]
@@ -232,12 +214,6 @@ def _affine_start(view, point, z, N, K):
         placed |= grow
 
 
-def _rows_of(view_ids, zk, ids):
-    """Rows of one view's 2D points ``zk`` (of the points ``view_ids``) for the ids ``ids``."""
-    order = np.argsort(view_ids)
-    return zk[order[np.searchsorted(view_ids, ids, sorter=order)]]
-
-
 def affine_als(view, point, z, N: int, K: int, max_iter: int, tol: float):
     """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares,
     for the observations t = (view[t], point[t], z[t]) of N points in K views."""
@@ -246,8 +222,8 @@ def affine_als(view, point, z, N: int, K: int, max_iter: int, tol: float):
     # A point seen once says nothing about the views: it fits any of them.
     informative = np.bincount(point, minlength=N)[point] >= 2
     previous = float(np.finfo(float).max)
-    for iteration in range(1, max_iter + 1):
-        L, t = _fit_views(X, view, point, z, K, informative)
+    for iteration in range(1, max_iter + 1):  # noqa: B007 - the count is returned
+        L, t = fit_views(X, view, point, z, K, informative)
         X = _fit_points(L, t, view, point, z, N, everything)
         residual = np.einsum("tab,ta->tb", L[view], X[point]) + t[view] - z
         rms = float(np.sqrt(np.mean(residual ** 2)))
@@ -384,7 +360,7 @@ def _variable(observations, images, max_iter, tol):
     """The variable setting (step 3), with a checked fallback: when noise lets the
     alternating sweeps drift to a cloud that all upgraded views see edge-on,
     fewer sweeps are tried, and if none helps it is said."""
-    view, point, z = _stacked(observations, images)
+    view, point, z = stacked(observations, images)
     tried = []
     for sweeps in (max_iter,) + tuple(s for s in _FALLBACK_SWEEPS if s < max_iter):
         X, L, rms, done = affine_als(view, point, z, observations.n_points,

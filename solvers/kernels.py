@@ -31,13 +31,13 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-# Loss codes, in the order of stress.LOSSES.
+# Loss codes, in the order of stress.STRESS_LOSSES.
 L2, HUBER, SOFT_L1 = 0, 1, 2
 # Floor on e in 1/e: keeps it finite for coincident images, where r e-terms cancel.
 _E_FLOOR = 1e-12
 # Reductions may be split into vector lanes (an order fixed at compile time) and
 # a * b + c fused; no flag that changes a single operation's rounding or NaN/inf.
-_LANES = {"reassoc", "nsz", "contract"}
+FASTMATH_FLAGS = {"reassoc", "nsz", "contract"}
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -129,29 +129,29 @@ def _dense_loss(D, y0, y1, mask, alpha, loss, scale, g0, g1):
 
 # One compiled function per loss: numba's compile time grows faster than the
 # code it compiles, so three small functions compile far sooner than one.
-@njit(cache=True, nogil=True, fastmath=_LANES)
+@njit(cache=True, nogil=True, fastmath=FASTMATH_FLAGS)
 def _dense_l2(D, y0, y1, mask, alpha, scale, g0, g1):
     return _dense_loss(D, y0, y1, mask, alpha, L2, scale, g0, g1)
 
 
-@njit(cache=True, nogil=True, fastmath=_LANES)
+@njit(cache=True, nogil=True, fastmath=FASTMATH_FLAGS)
 def _dense_huber(D, y0, y1, mask, alpha, scale, g0, g1):
     return _dense_loss(D, y0, y1, mask, alpha, HUBER, scale, g0, g1)
 
 
-@njit(cache=True, nogil=True, fastmath=_LANES)
+@njit(cache=True, nogil=True, fastmath=FASTMATH_FLAGS)
 def _dense_soft_l1(D, y0, y1, mask, alpha, scale, g0, g1):
     return _dense_loss(D, y0, y1, mask, alpha, SOFT_L1, scale, g0, g1)
 
 
-_DENSE = (_dense_l2, _dense_huber, _dense_soft_l1)  # by loss code
+DENSE_KERNELS = (_dense_l2, _dense_huber, _dense_soft_l1)  # by loss code
 
 
 def dense_view(D, y0, y1, mask, alpha, loss, scale, g0, g1):
     """Stress of one view over its pairs i < j (D and ``mask`` read above the
     diagonal); adds -1/2 dS/dy into (g0, g1) unless they are empty. ``mask``
     (n x n booleans) and ``alpha`` (n weights) are skipped when empty."""
-    return _DENSE[loss](D, y0, y1, mask, alpha, scale, g0, g1)
+    return DENSE_KERNELS[loss](D, y0, y1, mask, alpha, scale, g0, g1)
 
 
 @njit(cache=True, nogil=True)
@@ -209,7 +209,7 @@ def _guttman_row(Di, x0, x1, x2, xi, yi, zi, o0, o1, o2):
     return s, sq, f0, f1, f2
 
 
-@njit(cache=True, nogil=True, fastmath=_LANES)
+@njit(cache=True, nogil=True, fastmath=FASTMATH_FLAGS)
 def guttman_pass(D, X, out):
     """One pass of metric SMACOF (de Leeuw; Borg & Groenen 1997, ch. 8) at a 3D
     configuration X: its raw stress sum_{i<j} (d_ij - D_ij)^2 and
@@ -272,7 +272,7 @@ def _residual_row(x, P, Y, d, root, t):
             s * (u0 * P[t, 0, 2] + u1 * P[t, 1, 2]), -root[t] * (d[t] - e))
 
 
-@njit(cache=True, nogil=True, fastmath=_LANES)
+@njit(cache=True, nogil=True, fastmath=FASTMATH_FLAGS)
 def _gauss_newton_step(x, P, Y, d, root):
     """The least-squares step A s = b of one Gauss-Newton iteration, from the
     3 x 3 normal equations (one vectorised pass over the anchors, no m x 3
@@ -338,7 +338,7 @@ def row_misfits(x, P, Y, d, starts):
             u0 = P[t, 0, 0] * x[0] + P[t, 0, 1] * x[1] + P[t, 0, 2] * x[2] - Y[t, 0]
             u1 = P[t, 1, 0] * x[0] + P[t, 1, 1] * x[1] + P[t, 1, 2] * x[2] - Y[t, 1]
             res[t - a] = abs(d[t] - np.sqrt(u0 * u0 + u1 * u1))
-        out[r] = _median_in_place(res)
+        out[r] = median_in_place(res)
     return out
 
 
@@ -357,12 +357,12 @@ def row_median_residuals(D, y0, y1, cols):
             dx = y0[i] - c0[t]
             dy = y1[i] - c1[t]
             residuals[t] = abs(Di[cols[t]] - np.sqrt(dx * dx + dy * dy))
-        out[i] = _median_in_place(residuals)
+        out[i] = median_in_place(residuals)
     return out
 
 
 @njit(cache=True, nogil=True)
-def _median_in_place(a):
+def median_in_place(a):
     """np.median(a), reordering a: Hoare's selection of the middle element
     (median-of-three pivots), then for an even count the mean of it and the
     smallest element above it, as numpy averages the two middle ones."""
@@ -424,14 +424,14 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
     return total, grad
 
 
-_warm = False
+warmed = False
 
 
 def warm() -> None:
     """Compile (or load from the on-disk cache) every kernel now, once per
     process, so that no solve pays for it inside its timed region."""
-    global _warm
-    if _warm:
+    global warmed
+    if warmed:
         return
     Y = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
     # One signature per kernel, so one call each compiles it all (the dense one per loss).
@@ -444,4 +444,4 @@ def warm() -> None:
     multilaterate(np.zeros(3), P, Y, d, d, 1)
     row_misfits(np.zeros(3), P, Y, d, np.array([0, 3]))
     row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
-    _warm = True
+    warmed = True

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse.linalg import LinearOperator, eigsh
 
-
 # A PSD matrix with det > this x trace^d has condition number below 1 / this:
 # inverted directly; the rest (rank-deficient, or nearly) by SVD.
 _WELL_CONDITIONED = 1e-8
@@ -92,3 +91,35 @@ def elongation(X: np.ndarray) -> float:
     extents = np.ptp((X - X.mean(axis=0)) @ np.linalg.svd(X - X.mean(axis=0),
                                                          full_matrices=False)[2].T, axis=0)
     return float(extents[0] / max(extents[1], 1e-300))
+
+
+def stacked(obs, images: list[np.ndarray]):
+    """Every observation (view k, point id, 2D point) as flat arrays."""
+    view = np.concatenate([np.full(v.size, k) for k, v in enumerate(obs.views)])
+    point = np.concatenate([v.ids for v in obs.views])
+    z = np.concatenate(images)
+    return view, point, z
+
+
+def sum_by(index: np.ndarray, values: np.ndarray, size: int) -> np.ndarray:
+    """Sum rows of ``values`` (T x ...) into ``size`` bins by ``index``."""
+    flat = values.reshape(len(values), -1)
+    out = np.stack([np.bincount(index, weights=flat[:, c], minlength=size)
+                    for c in range(flat.shape[1])], axis=1)
+    return out.reshape((size,) + values.shape[1:])
+
+
+def fit_views(X, view, point, z, K, rows):
+    """[L_k; t_k^T] from [x_i, 1] -> z_t over the observations in ``rows``: one 4x4
+    least-squares system per view (views with no such rows come back zero)."""
+    A = np.concatenate([X[point[rows]], np.ones((rows.sum(), 1))], axis=1)
+    AtA = gram_by_group(A, view[rows], K)
+    Atz = gram_by_group(A, view[rows], K, z[rows])
+    Lt = np.einsum("kab,kbc->kac", pinv_psd(AtA), Atz)  # (K, 4, 2)
+    return Lt[:, :3, :], Lt[:, 3, :]
+
+
+def rows_of(view_ids, zk, ids):
+    """Rows of one view's 2D points ``zk`` (of the points ``view_ids``) for the ids ``ids``."""
+    order = np.argsort(view_ids)
+    return zk[order[np.searchsorted(view_ids, ids, sorter=order)]]

@@ -15,11 +15,10 @@ import itertools
 
 import numpy as np
 
-
-from . import kernels, lbfgs
-from .base import Choice, Interval, Observations, Reconstruction, register
-from .factorize import solve_factorize
-from .stress import LOSSES, Stress
+from mpe3d.solvers import kernels, lbfgs
+from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register
+from mpe3d.solvers.factorize import solve_factorize
+from mpe3d.solvers.stress import STRESS_LOSSES, Stress
 
 # Huber's tuning constant: 95% efficiency under Gaussian residuals.
 _HUBER_K = 1.345
@@ -52,7 +51,7 @@ def _skew(w: np.ndarray) -> np.ndarray:
     return W - W.transpose(0, 2, 1)
 
 
-def _rotations(P: np.ndarray) -> np.ndarray:
+def rotations_of(P: np.ndarray) -> np.ndarray:
     """Complete each P^k (orthonormal rows) into a rotation."""
     return np.concatenate([P, np.cross(P[:, 0], P[:, 1])[:, None, :]], axis=1)
 
@@ -73,7 +72,7 @@ def cayley_grad(G: np.ndarray, R0: np.ndarray, inv: np.ndarray, C: np.ndarray) -
     return np.stack([M[:, 2, 1] - M[:, 1, 2], M[:, 0, 2] - M[:, 2, 0], M[:, 1, 0] - M[:, 0, 1]], axis=1)
 
 
-def _objective(stress: Stress, shape, R0, fixed_P):
+def stress_objective(stress: Stress, shape, R0, fixed_P):
     """f(theta) and its gradient, theta = [X, w] (w only when P varies)."""
     N = shape[0]
 
@@ -96,7 +95,7 @@ def _objective(stress: Stress, shape, R0, fixed_P):
 
 
 _PARAMETER_CONSTRAINTS = {
-    "loss": Choice(LOSSES),
+    "loss": Choice(STRESS_LOSSES),
     "max_iter": Interval(int, 0, None),
     "tol": Interval(float, 0.0, None),
     "outliers": Choice(OUTLIERS),
@@ -158,7 +157,7 @@ def solve_refine(observations: Observations, *, random_state=None,
     used_start = "factorize"
     if value > _NOISY * total and not stress.sparse:  # noisy views: the algebraic start
         # may sit in a poor basin; the smart start is an N x N MDS, so only when dense
-        from .sgd import initial_state
+        from mpe3d.solvers.sgd import initial_state
 
         Xs, Ps = initial_state(observations, plain, "smart", rng, "smacof")
         alt = _descend(observations, stress, Xs, Ps, None, max_iter, tol, total)
@@ -323,8 +322,8 @@ def _line(stress, X, P, rejected, total, misfit=None) -> float:
 def _descend(observations: Observations, stress: Stress, X0: np.ndarray, P0: np.ndarray,
              f0: float | None, max_iter: int, tol: float, total: float):
     """L-BFGS from (X0, P0): the points, projections, objective, history, iterations, reason."""
-    R0 = _rotations(P0)
-    f, unpack = _objective(stress, X0.shape, R0, P0 if observations.fixed else None)
+    R0 = rotations_of(P0)
+    f, unpack = stress_objective(stress, X0.shape, R0, P0 if observations.fixed else None)
     theta0 = X0.ravel() if observations.fixed else np.concatenate([X0.ravel(), np.zeros(3 * len(P0))])
     start = f(theta0) if f0 is None else None
     f0 = start[0] if f0 is None else f0

@@ -35,10 +35,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.distance import cdist
 
-
-from .base import Choice, Interval, Observations, Reconstruction, register
-from .baseline import fit_projections, mds_embedding
-from .stress import Stress, project_rows
+from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register
+from mpe3d.solvers.starts import fit_projections, mds_embedding
+from mpe3d.solvers.stress import Stress, project_rows
 
 
 def random_projections(K: int, rng: np.random.Generator) -> np.ndarray:

@@ -24,8 +24,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from . import kernels
-from .base import Observations
+from mpe3d.solvers import kernels
+from mpe3d.solvers.base import Observations
 
 # Rows per block: keeps each temporary at about 4M float64 entries (32 MB).
 _BLOCK_ENTRIES = 1 << 22
@@ -75,7 +75,7 @@ def _view_inputs(observations: Observations) -> list:
     return cache[DENSE_LIMIT]
 
 
-LOSSES = ("l2", "huber", "soft_l1")  # in the order of the kernels' loss codes
+STRESS_LOSSES = ("l2", "huber", "soft_l1")  # in the order of the kernels' loss codes
 KERNELS = ("compiled", "numpy")
 
 
@@ -116,7 +116,7 @@ class Stress:
         if kernel not in KERNELS:
             raise ValueError(f"kernel must be one of {KERNELS}, got {kernel!r}")
         self.loss, self.scale, self.kernel = loss, float(scale), kernel
-        self._loss_code = LOSSES.index(loss)
+        self._loss_code = STRESS_LOSSES.index(loss)
         self.n_points = observations.n_points
         self.ids = [view.ids for view in observations.views]
         # Per view: a dense distance matrix, or (i, j, d) over a sparse pair set.

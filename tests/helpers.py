@@ -1,12 +1,15 @@
 """Helpers shared by the tests."""
 import os
+import signal
+import socket
 import subprocess
 import sys
+import time
+import urllib.request
 from pathlib import Path
 
-
-from mpe3d.harness.config import make_config
-from mpe3d.harness.observe import build_scene, observe, seed_streams
+from mpe3d.harness.experiment.config import make_config
+from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -43,7 +46,7 @@ def random_views(rng, model: str, n_points: int, n_views: int, *, turn: float, n
     and each observation's view, point and noisy 2D point, a ``keep`` share kept."""
     import numpy as np
 
-    from mpe3d.solvers.cameras import affine_cameras, exp_so3
+    from mpe3d.solvers.sfm.cameras import affine_cameras, exp_so3
 
     X = rng.standard_normal((n_points, 3)) * 100
     R = exp_so3(turn * rng.standard_normal((n_views, 3)))
@@ -56,3 +59,33 @@ def random_views(rng, model: str, n_points: int, n_views: int, *, turn: float, n
         view, point = view[seen], point[seen]
     z = cameras.project(X, view, point) + noise * rng.standard_normal((len(view), 2))
     return X, cameras, view, point, z
+
+
+# -- real servers on 127.0.0.1 ----------------------------------------------------
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(url, process, seconds=120):
+    deadline = time.time() + seconds
+    while time.time() < deadline:
+        assert process.poll() is None, "the server died while starting"
+        try:
+            with urllib.request.urlopen(url, timeout=2) as answer:
+                if answer.status == 200:
+                    return
+        except OSError:
+            time.sleep(0.3)
+    raise TimeoutError(url)
+
+
+def stop(process):
+    os.killpg(process.pid, signal.SIGTERM)  # the server's workers are its children
+    try:
+        process.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.wait()

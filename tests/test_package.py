@@ -11,8 +11,7 @@ import pytest
 
 import mpe3d
 from mpe3d import solvers
-
-from .helpers import REPO
+from tests.helpers import REPO
 
 PUBLIC = {"reconstruct", "write_cloud", "solve", "View", "Observations", "run", "make_config",
           "load_sweep", "Tracker"}
@@ -49,7 +48,7 @@ def test_the_wheel_installs_mpe3d_and_nothing_else(tmp_path):
         names = archive.namelist()
     top = {name.split("/")[0] for name in names}
     assert top == {"mpe3d", next(t for t in top if t.endswith(".dist-info"))}, top
-    for data in ("mpe3d/harness/assets/meshes/chair.ply", "mpe3d/sweeps/paper/views.yaml",
+    for data in ("mpe3d/harness/scene/assets/meshes/chair.ply", "mpe3d/sweeps/paper/views.yaml",
                  "mpe3d/reports/data/paper_tables.csv", "mpe3d/reports/assets/viewer.js"):
         assert data in names, data
     assert not any(name.startswith("mpe3d/tests") for name in names)

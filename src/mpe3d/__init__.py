@@ -30,15 +30,15 @@ except PackageNotFoundError:  # running from a checkout that was never installed
     __version__ = "0+unknown"
 
 _PUBLIC = {
-    "reconstruct": "mpe3d.harness.reconstruct",
-    "write_cloud": "mpe3d.harness.formats",
+    "reconstruct": "mpe3d.harness.userdata.reconstruct",
+    "write_cloud": "mpe3d.harness.userdata.formats",
     "solve": "mpe3d.solvers",
     "View": "mpe3d.solvers",
     "Observations": "mpe3d.solvers",
-    "run": "mpe3d.harness.execute",
-    "make_config": "mpe3d.harness.config",
-    "load_sweep": "mpe3d.harness.sweep",
-    "Tracker": "mpe3d.harness.tracking",
+    "run": "mpe3d.harness.experiment.execute",
+    "make_config": "mpe3d.harness.experiment.config",
+    "load_sweep": "mpe3d.harness.experiment.sweep",
+    "Tracker": "mpe3d.harness.tracking.store",
 }
 
 __all__ = list(_PUBLIC)

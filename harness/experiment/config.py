@@ -1,0 +1,334 @@
+"""Run configuration: every key of ``mpe3d run``, its default, and validation.
+
+A :class:`RunConfig` is built from dotted ``KEY=VALUE`` overrides and/or a YAML
+file, validated at that boundary, and can be turned back into a flat or a
+nested dict and hashed canonically (the hash is the cache key of later sweeps).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+from mpe3d.errors import MpeError, coerce, suggest
+
+SCHEMA_VERSION = 2  # bump when a key's meaning changes: every cached run is redone
+
+VISIBILITY_MODES = ("all", "exact", "count", "raytrace", "zbuffer")
+VIEW_LAYOUTS = ("band", "sphere")
+NOISE_TYPES = ("none", "distance", "correspondence")
+NOISE_VIEWS = ("one", "all")
+NOISE_ROWS = ("per_view", "shared")
+PROJECTIONS = ("fixed", "variable")
+OBSERVE = ("distances", "coordinates")
+INITS = ("smart", "random")
+ALIGNS = ("rigid", "ransac4")
+PIPELINE_NAMES = ("points", "colmap")  # execute.PIPELINES runs them
+MATCHINGS = ("auto", "exhaustive", "sequential")
+BACKENDS = ("loky", "dask")  # where a sweep's runs are computed (the runner's choice)
+
+
+@dataclass(frozen=True)
+class Key:
+    """One documented configuration key."""
+
+    default: Any
+    kind: type
+    doc: str
+    choices: tuple = ()
+    optional: bool = False  # ``None`` is a valid value
+    # Keys added after a cache already existed are hashed only away from their
+    # default, so adding a key never invalidates the runs tracked before it.
+    hashed_at_default: bool = True
+
+
+KEYS: dict[str, Key] = {
+    "pipeline": Key("points", str, "points: the paper's input, a sampled cloud seen through K projections; colmap: photos of the mesh from images.count cameras, reconstructed by COLMAP (pycolmap), its points scored and its feature tracks fed to mpe3d (views, visibility, noise, projections, observe, init, align and solver do not apply)", PIPELINE_NAMES, hashed_at_default=False),
+    "images.count": Key(250, int, "pipeline colmap: photos rendered along the camera spiral (>= 2)", hashed_at_default=False),
+    "images.size": Key(400, int, "pipeline colmap: width and height of each photo in pixels (64 to 4096)", hashed_at_default=False),
+    "images.matching": Key("auto", str, "pipeline colmap: COLMAP's matching: exhaustive, sequential along the camera path, or auto (exhaustive up to 50 photos)", MATCHINGS, hashed_at_default=False),
+    "shape": Key("chair", str, "bundled name, mesh path, shapenet:<synset>/<id>, pix3d:<category>/<model>, or torus|box|sphere|cone"),
+    "points": Key(512, int, "number N of points sampled area-uniformly on the surface (>= 4)"),
+    "views": Key(4, int, "number K of views (>= 2)"),
+    "angle_range": Key(360.0, float, "angle band theta_r in degrees from which the view angles are drawn (0 < theta_r <= 360)"),
+    "view_layout": Key("band", str, "band: angles drawn from theta_r split into K bins (the paper); sphere: K nearly equidistant directions (Fibonacci lattice, randomly turned)", VIEW_LAYOUTS, hashed_at_default=False),
+    "visibility.mode": Key("exact", str, "which points each view sees: all; exact (k views each); count (random per view); raytrace (rays towards the camera against the mesh); zbuffer (the authors' z-buffer on the points)", VISIBILITY_MODES),
+    "visibility.k": Key(3, int, "mode exact: every point is visible in exactly k views (1 <= k <= views)"),
+    "visibility.count": Key(None, int, "mode count: every view keeps this many random points; null means round(0.75 * points)", optional=True),
+    "visibility.n_rays": Key(None, int, "mode zbuffer: rays a side of each view's grid (a ray keeps the nearest point within 2 grid spacings); null means points // 3, the authors' default (their README uses 400)", optional=True, hashed_at_default=False),
+    "visibility.min_views": Key(0, int, "keep only the points visible in at least this many views (0 keeps all), as in the paper's raytrace-count figure", hashed_at_default=False),
+    "noise.type": Key("none", str, "distance: Gaussian noise on distance rows; correspondence: wrong correspondences", NOISE_TYPES),
+    "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]"),
+    "noise.rows": Key("per_view", str, "distance: the noisy rows drawn independently in each view, round(q n_k) of them, or one set of round(q N) points for all views (the authors' code)", NOISE_ROWS, hashed_at_default=False),
+    "noise.views": Key("one", str, "correspondence: each wrong match is made in one random view of its point (the paper and the authors' code) or in all that see it (a consistent, undetectable wrong cloud)", NOISE_VIEWS, hashed_at_default=False),
+    "noise.amplitude": Key(0.05, float, "p: noise variance p*d (distance) or displacement radius p*d (correspondence), d = cloud diameter"),
+    "projections": Key("fixed", str, "fixed: the solver is given P^k; variable: it estimates them", PROJECTIONS),
+    "observe": Key("distances", str, "what each view hands the solver: its distance matrix (the paper) or its points' 2D coordinates", OBSERVE),
+    "init": Key("smart", str, "smart: start from the baseline (MDS); random: uniform in the unit cube", INITS),
+    "align": Key("rigid", str, "alignment before CD/EMD: rigid (O(3) + translation) or ransac4 (paper Eq. 6-7)", ALIGNS),
+    "seed": Key(0, int, "root seed; scene, noise, solver and metrics draw from separate streams of it"),
+    "solver.name": Key("sgd", str, "solver name (see `mpe3d solvers`)"),
+}
+
+# ``solver`` alone is short for ``solver.name``.
+ALIASES = {"solver": "solver.name"}
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """The resolved configuration of one run.
+
+    ``values`` maps every key of :data:`KEYS` to its value; ``solver_options``
+    holds the ``solver.<option>`` keys, validated against the solver's
+    signature.
+    """
+
+    values: Mapping[str, Any]
+    solver_options: Mapping[str, Any] = field(default_factory=dict)
+
+    def __getitem__(self, key: str) -> Any:
+        if key.startswith("solver.") and key != "solver.name":
+            return self.solver_options[key[len("solver."):]]
+        return self.values[key]
+
+    @property
+    def solver(self) -> str:
+        return self.values["solver.name"]
+
+    def flat(self) -> dict[str, Any]:
+        """All keys, dotted, solver options included."""
+        out = dict(self.values)
+        out.update({f"solver.{k}": v for k, v in sorted(self.solver_options.items())})
+        return out
+
+    def nested(self) -> dict[str, Any]:
+        """The same keys as nested dicts, as a YAML config file would hold them."""
+        out: dict[str, Any] = {}
+        for key, value in self.flat().items():
+            head, _, tail = key.partition(".")
+            if tail:
+                out.setdefault(head, {})[tail] = value
+            else:
+                out[head] = value
+        return out
+
+    def hash(self) -> str:
+        """Canonical SHA-256 of the resolved values and the schema version."""
+        flat = {key: value for key, value in self.flat().items()
+                if key not in KEYS or KEYS[key].hashed_at_default or value != KEYS[key].default}
+        payload = json.dumps({"schema": SCHEMA_VERSION, "config": flat},
+                             sort_keys=True, separators=(",", ":"), allow_nan=False)
+        return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+    def replace(self, **overrides: Any) -> "RunConfig":
+        """A copy with dotted overrides applied (``replace(**{"visibility.k": 2})``).
+
+        Switching solver drops the old solver's options: they need not exist
+        on the new one.
+        """
+        overrides = {ALIASES.get(k, k): v for k, v in overrides.items()}
+        base = self.flat()
+        if overrides.get("solver.name", self.solver) != self.solver:
+            base = dict(self.values)
+        return make_config(overrides, base=base)
+
+
+def flatten(mapping: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested dicts to dotted keys; ``{"solver": "sgd"}`` stays a leaf."""
+    out: dict[str, Any] = {}
+    for key, value in mapping.items():
+        dotted = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(flatten(value, dotted + "."))
+        else:
+            out[dotted] = value
+    return out
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``"visibility.k=2"`` -> ``("visibility.k", 2)``; values are read as YAML scalars."""
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise MpeError(f"expected KEY=VALUE, got '{text}'")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else ""
+    except yaml.YAMLError:
+        value = raw
+    return key.strip(), value
+
+
+_MAX_NODES = 1_000_000  # YAML aliases can make a small file a huge tree ("billion laughs")
+# PyYAML's C parser where it was built with libyaml: several times faster.
+_LOADER = getattr(yaml, "CSafeLoader", yaml.SafeLoader)
+
+
+def _key_lines(node, path: Path, prefix: str = "", out: dict[str, int] | None = None,
+               budget: list[int] | None = None) -> dict[str, int]:
+    """Dotted path -> the 1-based line where it stands in a composed YAML node.
+
+    Mapping keys give ``a.b``; list items give ``a.b[2]`` (so an error can
+    point at the one bad value of a list written over several lines). A key
+    written twice in one mapping, or once nested and once dotted, is an error
+    naming both lines: YAML would silently keep the last.
+    """
+    out = {} if out is None else out
+    budget = [_MAX_NODES] if budget is None else budget
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise MpeError(f"{path}: the YAML expands to over {_MAX_NODES:,} values (aliases?)")
+    if isinstance(node, yaml.MappingNode):
+        for key_node, value_node in node.value:
+            dotted = f"{prefix}{key_node.value}"
+            line = key_node.start_mark.line + 1
+            if dotted in out and key_node.value != "<<":
+                raise MpeError(f"duplicate key '{dotted}' at {path}:{line} "
+                               f"(first at line {out[dotted]})", key=dotted)
+            out[dotted] = line
+            _key_lines(value_node, path, dotted + ".", out, budget)
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            item_path = f"{prefix[:-1]}[{i}]"
+            out[item_path] = item.start_mark.line + 1
+            _key_lines(item, path, item_path + ".", out, budget)
+    return out
+
+
+def load_yaml(path: str | Path, what: str = "config file",
+              max_mb: float | None = None) -> tuple[Any, dict[str, int]]:
+    """Parse one YAML document: its data, and the line of every key and list item."""
+    from mpe3d.harness.experiment.limits import check_yaml_size
+
+    path = Path(path)
+    try:
+        check_yaml_size(path, what, max_mb)
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise MpeError(f"{what} {path} is not a UTF-8 text file") from None
+    except OSError as exc:
+        raise MpeError(f"cannot read {what} {path}: {exc.strerror or exc}") from None
+    try:
+        loader = _LOADER(text)  # one parse gives both the values and their lines
+        try:
+            node = loader.get_single_node()
+            lines = _key_lines(node, path)
+            data = loader.construct_document(node) if node is not None else None
+        finally:
+            loader.dispose()
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        problem = getattr(exc, "problem", None) or "malformed YAML"
+        raise MpeError(f"malformed YAML at {where}: {problem}") from None
+    except RecursionError:
+        raise MpeError(f"{what} {path}: nested too deeply") from None
+    return data, lines
+
+
+def read_yaml(path: str | Path, max_mb: float | None = None) -> tuple[dict[str, Any], dict[str, int]]:
+    """A YAML run config (nested or dotted keys) as a flat dict, and each key's line."""
+    data, lines = load_yaml(path, max_mb=max_mb)
+    if data is None:
+        return {}, {}
+    if not isinstance(data, Mapping):
+        raise MpeError(f"{path}: a run config must be a mapping of keys to values")
+    return flatten(data), lines
+
+
+def config_from_file(path: str | Path, overrides: Mapping[str, Any] | None = None,
+                     max_mb: float | None = None) -> RunConfig:
+    """A run config from a YAML file, with ``overrides`` on top.
+
+    The file is validated on its own first, so an error in it names
+    ``file:line``.
+    """
+    values, lines = read_yaml(path, max_mb)
+    try:
+        make_config(values)
+    except MpeError as exc:
+        spelled = {name: alias for alias, name in ALIASES.items()}  # "solver.name" may be "solver:"
+        line = lines.get(exc.key) or lines.get(spelled.get(exc.key))
+        where = f"{path}:{line}" if line else str(path)
+        raise exc.located(where) from None
+    return make_config({**values, **(overrides or {})})
+
+
+def coerce_value(key: str, value: Any, spec: Key) -> Any:
+    if value is None and spec.optional:
+        return None
+    value = coerce(key, value, spec.kind)
+    if spec.choices and value not in spec.choices:
+        raise MpeError(f"{key}: '{value}' is not one of {', '.join(spec.choices)}",
+                       key=key, hint=suggest(value, spec.choices))
+    return value
+
+
+def _check_ranges(v: dict[str, Any]) -> None:
+    def bad(key: str, rule: str) -> MpeError:
+        return MpeError(f"{key}: {rule}, got {v[key]}", key=key)
+
+    if v["points"] < 4:
+        raise bad("points", "must be at least 4")
+    if v["views"] < 2:
+        raise bad("views", "must be at least 2")
+    if not 0 < v["angle_range"] <= 360:
+        raise bad("angle_range", "must be in (0, 360] degrees")
+    if not 1 <= v["visibility.k"] <= v["views"]:
+        raise bad("visibility.k", f"must be between 1 and views={v['views']}")
+    if not 0 <= v["visibility.min_views"] <= v["views"]:
+        raise bad("visibility.min_views", f"must be between 0 and views={v['views']}")
+    n_rays = v["visibility.n_rays"]
+    if n_rays is not None and n_rays < 2:
+        raise bad("visibility.n_rays", "must be at least 2")
+    count = v["visibility.count"]
+    if count is not None and not 2 <= count <= v["points"]:
+        raise bad("visibility.count", f"must be between 2 and points={v['points']}")
+    if not 0.0 <= v["noise.fraction"] <= 1.0:
+        raise bad("noise.fraction", "must be in [0, 1]")
+    if v["noise.amplitude"] < 0:
+        raise bad("noise.amplitude", "must be >= 0")
+    if v["seed"] < 0:
+        raise bad("seed", "must be >= 0")
+    if v["images.count"] < 2:
+        raise bad("images.count", "must be at least 2")
+    if not 64 <= v["images.size"] <= 4096:
+        raise bad("images.size", "must be between 64 and 4096 pixels")
+    if v["observe"] == "coordinates" and v["noise.type"] == "distance":
+        raise MpeError("noise.type: distance noise perturbs distance matrices; with "
+                       "observe=coordinates use correspondence noise", key="noise.type")
+
+
+def make_config(overrides: Mapping[str, Any] | None = None,
+                base: Mapping[str, Any] | None = None) -> RunConfig:
+    """Validate dotted overrides on top of ``base`` (itself on top of the defaults)."""
+    from mpe3d.solvers import validate_options  # solvers own their option lists
+
+    values = {key: spec.default for key, spec in KEYS.items()}
+    options: dict[str, Any] = {}
+    merged = dict(base or {})
+    merged.update(overrides or {})
+    merged = {ALIASES.get(k, k): v for k, v in merged.items()}
+    for key, value in merged.items():
+        if key in KEYS:
+            values[key] = coerce_value(key, value, KEYS[key])
+        elif key.startswith("solver."):
+            options[key[len("solver."):]] = value
+        else:
+            raise MpeError(f"unknown key '{key}'", key=key, hint=suggest(key, list(KEYS) + list(ALIASES)))
+    _check_ranges(values)
+    options = validate_options(values["solver.name"], options)
+    return RunConfig(values=values, solver_options=options)
+
+
+def describe_keys() -> str:
+    """A table of every key, its default and its meaning (for ``--help`` and the README)."""
+    rows = []
+    for key, spec in KEYS.items():
+        default = "null" if spec.default is None else spec.default
+        choices = f" ({' | '.join(spec.choices)})" if spec.choices else ""
+        rows.append(f"  {key:<18} {str(default):<8} {spec.doc}{choices}")
+    return "\n".join(rows)

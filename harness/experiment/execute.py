@@ -1,0 +1,118 @@
+"""One run end to end, through the pipeline its config names, and its record for the parent."""
+
+from __future__ import annotations
+
+import os
+import socket
+import time
+import traceback
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from mpe3d.errors import MpeError
+from mpe3d.harness.experiment import colmap_pipeline, points_pipeline
+from mpe3d.harness.experiment.config import RunConfig
+from mpe3d.harness.experiment.limits import check_run_memory
+from mpe3d.harness.experiment.result import Pipeline, RunResult
+from mpe3d.harness.scene.observe import seed_streams
+from mpe3d.harness.tracking.identity import code_identity
+from mpe3d.harness.tracking.records import RunRecord
+
+# BLAS sums in another order with another thread count, which moves results by
+# an ulp or more; one thread everywhere (CLI, sweep parent, loky and dask
+# workers) makes every run bit-identical wherever it runs. Sweeps get their
+# parallelism from running several runs at once.
+BLAS_THREADS = 1
+# What each value of the ``pipeline`` key runs (config.PIPELINE_NAMES lists the
+# names without importing the pipelines; a test checks the two agree).
+PIPELINES: dict[str, Pipeline] = {"points": points_pipeline, "colmap": colmap_pipeline}
+
+
+def run(config: RunConfig) -> RunResult:
+    """Run ``config``; the solver only ever sees the observations."""
+    check_run_memory(config)  # before sampling: refuse what cannot fit, in one line
+    with threadpool_limits(limits=BLAS_THREADS):
+        return _run(config)
+
+
+def _run(config: RunConfig) -> RunResult:
+    start = time.perf_counter()
+    result = PIPELINES[config["pipeline"]].run(config, seed_streams(config["seed"]))
+    return replace(result, wall_s=time.perf_counter() - start)
+
+
+def _made_by(config: RunConfig) -> dict[str, Any]:
+    """Which run a record is of, and the code that computed it."""
+    return {"config_hash": config.hash(), "params": config.flat(), "code": code_identity()}
+
+
+def failed_record(config: RunConfig, error: str, trace: str = "", start: float | None = None,
+                  facts: dict[str, str] | None = None) -> RunRecord:
+    """The record of a run that raised, or whose worker died."""
+    now = time.time()
+    return RunRecord(**_made_by(config), status="FAILED", start_ms=int((start or now) * 1000),
+                     end_ms=int(now * 1000),
+                     facts=facts or {}, error=error, traceback=trace)
+
+
+def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
+    """Run ``config`` in a worker and return what the parent will log."""
+    start = time.time()
+    worker = {"worker": f"{socket.gethostname()}:{os.getpid()}"}
+    try:
+        result = run(config)
+    except Exception as exc:  # noqa: BLE001 - any failure is this run's result, not the sweep's
+        message = str(exc) if isinstance(exc, MpeError) else f"{type(exc).__name__}: {exc}"
+        return failed_record(config, message or type(exc).__name__, traceback.format_exc(),
+                             start, worker)
+    recon = result.reconstruction
+    facts = {**worker, "termination": recon.termination,
+             "visible_per_view": ",".join(map(str, result.scene.visible_per_view))}
+    if result.facts.get("warnings"):
+        facts["warnings"] = " | ".join(result.facts["warnings"])
+    keep_clouds = keep_clouds and len(result.aligned) > 0  # COLMAP may make no model
+    picture = _picture(result) if keep_clouds else None
+    if isinstance(picture, str):
+        facts["picture_error"], picture = picture, None
+    return RunRecord(**_made_by(config), status="FINISHED", start_ms=int(start * 1000),
+                     end_ms=int(time.time() * 1000),
+                     metrics={**result.metrics, "wall_s": result.wall_s},
+                     stress_history=np.asarray(recon.stress_history, dtype=float), facts=facts,
+                     truth=result.scene.points if keep_clouds else None,
+                     reconstruction=result.aligned if keep_clouds else None, picture=picture)
+
+
+def _title(result: RunResult) -> str:
+    return PIPELINES[result.config["pipeline"]].title(result)
+
+
+def _picture(result: RunResult) -> np.ndarray | str:
+    """The run's comparison picture as PNG bytes, drawn in the worker so the
+    parent only stores it; a drawing failure is noted, never the run's."""
+    from mpe3d.harness.experiment.pictures import comparison_png
+
+    try:
+        png = comparison_png(result.scene.points, result.aligned, _title(result))
+    except Exception as exc:  # noqa: BLE001 - a picture is not worth a run
+        return f"{type(exc).__name__}: {exc}"
+    return np.frombuffer(png, dtype=np.uint8)
+
+
+def write_outputs(result: RunResult, out: Path) -> list[Path]:
+    """ground_truth.ply, reconstruction.ply (aligned) and a PNG comparing them."""
+    import trimesh
+
+    from mpe3d.harness.experiment.pictures import render_comparison
+
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / "ground_truth.ply", out / "reconstruction.ply", out / "comparison.png"]
+    trimesh.PointCloud(result.scene.points).export(paths[0])
+    if not len(result.aligned):  # COLMAP made no model: nothing to compare
+        return paths[:1]
+    trimesh.PointCloud(result.aligned).export(paths[1])
+    render_comparison(result.scene.points, result.aligned, paths[2], title=_title(result))
+    return paths

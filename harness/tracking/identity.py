@@ -1,0 +1,171 @@
+"""The identity of the code that computes a run's numbers.
+
+A tracked run is only as good as the code that made it, so every run records
+``code_identity()``: the package version and a fingerprint of the modules that
+can change a run's numbers, and of the bundled meshes. Resume reuses a run
+only when its identity matches the running code's.
+
+Which modules count is read from the package tree, never from a list: every
+module of ``mpe3d.solvers`` (subpackages included), and every ``mpe3d``
+module that the run entry point (:data:`RUN_ENTRY`) imports, directly or
+through others, at the top or inside a function, with the packages that hold
+them. A module added, moved or split on a run's path is covered without
+editing anything; the command line, tracking, sweeps and reports are not on
+that path and are not part of it.
+
+The fingerprint is taken over each module's syntax tree with docstrings
+dropped, so comments, docstrings and formatting do not change it.
+"""
+
+from __future__ import annotations
+
+import ast
+import hashlib
+import importlib.util
+import subprocess
+from functools import lru_cache
+from pathlib import Path
+
+PACKAGE = "mpe3d"
+RUN_ENTRY = "mpe3d.harness.experiment.execute"  # where a worker starts a run: every pipeline is below it
+SOLVERS = "mpe3d.solvers"
+_IGNORED_FIELDS = {"ctx", "type_comment", "kind"}
+
+
+def _canonical(node) -> str:
+    """A syntax tree as text, stable across Python versions: empty and ``None``
+    fields (which newer Pythons add) are left out, positions are never in."""
+    if isinstance(node, list):
+        return "[" + ",".join(_canonical(item) for item in node) + "]"
+    if not isinstance(node, ast.AST):
+        return repr(node)
+    fields = []
+    for name in node._fields:
+        value = getattr(node, name, None)
+        if name in _IGNORED_FIELDS or value is None or value == []:
+            continue
+        fields.append(f"{name}={_canonical(value)}")
+    return f"{type(node).__name__}({','.join(fields)})"
+
+
+def _without_docstrings(tree: ast.AST) -> ast.AST:
+    for node in ast.walk(tree):
+        body = getattr(node, "body", None)
+        if (isinstance(node, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+                and body and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant) and isinstance(body[0].value.value, str)):
+            node.body = body[1:] or [ast.Pass()]
+    return tree
+
+
+def source_fingerprint(source: str) -> str:
+    """SHA-256 of one module's code, blind to comments, docstrings and layout."""
+    tree = _without_docstrings(ast.parse(source))
+    return hashlib.sha256(_canonical(tree).encode()).hexdigest()
+
+
+def module_file(name: str) -> Path | None:
+    """Where module ``name`` of this package lives (its ``__init__.py`` for a package)."""
+    try:
+        spec = importlib.util.find_spec(name)
+    except (ImportError, ValueError):
+        return None
+    if spec is None or not spec.origin or not spec.origin.endswith(".py"):
+        return None
+    return Path(spec.origin)
+
+
+def _imported(name: str, path: Path) -> set[str]:
+    """The ``mpe3d`` modules that module ``name`` imports anywhere in its code
+    (a name imported from a package counts when it is a module itself)."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                root = ".".join(parts[:len(parts) - node.level + 1])
+                base = f"{root}.{base}" if base else root
+            found.add(base)
+            found |= {f"{base}.{alias.name}" for alias in node.names}
+    return {m for m in found if m.split(".")[0] == PACKAGE and module_file(m)}
+
+
+def _with_packages(names: set[str]) -> set[str]:
+    """Importing ``a.b.c`` runs ``a`` and ``a.b`` first: they count too."""
+    return names | {".".join(n.split(".")[:i]) for n in names for i in range(1, n.count(".") + 1)}
+
+
+def _solver_modules() -> set[str]:
+    root = module_file(SOLVERS).parent
+    return {SOLVERS + "".join("." + part for part in p.relative_to(root).with_suffix("").parts
+                              if part != "__init__")
+            for p in root.rglob("*.py")}
+
+
+@lru_cache(maxsize=1)
+def fingerprinted_modules() -> frozenset[str]:
+    """Every module whose code is in :func:`code_fingerprint`: the solvers, and
+    the closure of :data:`RUN_ENTRY`'s imports inside the package."""
+    todo, seen = [RUN_ENTRY, *_solver_modules()], set()
+    while todo:
+        name = todo.pop()
+        if name in seen:
+            continue
+        seen.add(name)
+        todo.extend(_imported(name, module_file(name)) - seen)
+    return frozenset(_with_packages(seen))
+
+
+def _numeric_files() -> list[tuple[str, Path]]:
+    files = [(name, module_file(name)) for name in sorted(fingerprinted_modules())]
+    meshes = module_file("mpe3d.harness.scene").parent / "assets" / "meshes"
+    files += [(f"meshes/{p.name}", p) for p in sorted(meshes.glob("*.ply"))]
+    return files
+
+
+@lru_cache(maxsize=1)
+def code_fingerprint() -> str:
+    """The fingerprint of everything that can change a run's numbers (hex, 12 digits)."""
+    digest = hashlib.sha256()
+    for name, path in _numeric_files():
+        part = source_fingerprint(path.read_text()) if path.suffix == ".py" \
+            else hashlib.sha256(path.read_bytes()).hexdigest()
+        digest.update(f"{name}:{part}\n".encode())
+    return digest.hexdigest()[:12]
+
+
+@lru_cache(maxsize=1)
+def code_identity() -> str:
+    """``<version>/<fingerprint>``: what a run's ``mpe3d.code`` tag holds."""
+    from mpe3d import __version__
+
+    return f"{__version__}/{code_fingerprint()}"
+
+
+@lru_cache(maxsize=1)
+def git_commit() -> str | None:
+    """The git commit of the checkout this code runs from (``+dirty`` if modified).
+
+    ``None`` for an installed copy: a virtual environment inside a checkout is
+    not that checkout's code, so the module must be a file git tracks.
+    """
+    here = Path(__file__).resolve()
+
+    def git(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run(["git", "-C", str(here.parent), *args], capture_output=True,
+                              text=True, timeout=10)
+
+    try:
+        if git("ls-files", "--error-unmatch", "__init__.py").returncode != 0:
+            return None
+        commit = git("rev-parse", "HEAD")
+        if commit.returncode != 0:
+            return None
+        dirty = git("status", "--porcelain", "--untracked-files=no").stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return None
+    return commit.stdout.strip() + ("+dirty" if dirty else "")

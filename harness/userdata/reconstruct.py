@@ -1,0 +1,457 @@
+"""Reconstruct your own data: matched 2D keypoints (or distance matrices) -> a 3D cloud.
+
+:func:`reconstruct` joins three parts kept apart: the file formats
+(:mod:`mpe3d.harness.userdata.formats`), the checks of what they hold (here, every
+error one line naming the file, view and row), and the solve:
+
+* views given as 2D coordinates (keypoints, in pixels) pose bundle
+  adjustment, the reprojection error over the points and each view's camera
+  (``objective="reprojection"``, :mod:`mpe3d.solvers.sfm.bundle`), with a camera
+  model (``camera``: orthographic, scaled, perspective, or auto), wrong
+  matches found and dropped;
+* distance matrices pose the 3DMPE stress (paper Eq. 1, ``objective="stress"``,
+  solved by ``solver``), which coordinates can also ask for.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from mpe3d import solvers
+from mpe3d.errors import MpeError
+from mpe3d.harness.tracking.identity import code_identity
+from mpe3d.harness.userdata.formats import finite_array, read_projections, read_views
+from mpe3d.solvers import Observations, View
+from mpe3d.solvers.degenerate import check_geometry, collect_notes
+from mpe3d.solvers.sfm import bundle
+from mpe3d.solvers.sfm.adjust import REPROJECTION_LOSSES
+from mpe3d.solvers.sfm.bundle import FAR_FACTOR, MIN_RAY_ANGLE
+from mpe3d.solvers.sfm.cameras import CAMERAS
+from mpe3d.solvers.stress import STRESS_LOSSES
+
+SOLVERS = ("refine", "factorize", "sgd")
+OBJECTIVES = ("reprojection", "stress")
+CAMERA_CHOICES = ("auto",) + CAMERAS
+LIKELY_MISSING = ((-1.0, -1.0), (0.0, 0.0))  # what OpenCV and VGG files write for "not seen"
+SYMMETRY_TOL = 1e-6  # relative: distance matrices written as text lose a little
+
+
+@dataclass(frozen=True)
+class ViewCamera:
+    """One view's fitted camera. A pinhole: ``P = K [R | translation]`` with
+    ``focal_px``; an affine camera (orthographic or scaled): ``P = scale R[:2]``
+    plus ``translation_px`` in the image; a given 3x4 matrix: ``P`` only."""
+
+    view: str
+    P: np.ndarray  # (3, 4) pinhole, (2, 3) affine
+    rotation: np.ndarray | None = None  # (3, 3)
+    focal_px: float | None = None
+    translation: np.ndarray | None = None  # (3,) pinhole
+    scale: float | None = None
+    translation_px: np.ndarray | None = None  # (2,) affine
+
+    @classmethod
+    def from_numbers(cls, view: str, numbers: dict) -> "ViewCamera":
+        """From :meth:`mpe3d.solvers.sfm.cameras.Cameras.matrices`' plain numbers."""
+        arrays = {k: np.asarray(v, dtype=float) for k, v in numbers.items()
+                  if k in ("P", "rotation", "translation", "translation_px")}
+        plain = {k: float(v) for k, v in numbers.items() if k in ("focal_px", "scale")}
+        return cls(view, **arrays, **plain)
+
+    def numbers(self) -> dict[str, Any]:
+        """The camera as the report writes it (JSON-ready, fields in the report's order)."""
+        if self.rotation is None:
+            return {"P": self.P.tolist()}
+        if self.focal_px is not None:
+            return {"focal_px": self.focal_px, "rotation": self.rotation.tolist(),
+                    "translation": self.translation.tolist(), "P": self.P.tolist()}
+        return {"scale": self.scale, "rotation": self.rotation.tolist(),
+                "translation_px": self.translation_px.tolist(), "P": self.P.tolist()}
+
+
+@dataclass
+class Result:
+    """A reconstruction of user data: the cloud, its ids, and what to trust about it.
+
+    The typed fields are the result; :attr:`report` is the JSON report
+    written from them (and from ``facts``, the numbers that only it shows),
+    never read back as data.
+    """
+
+    points: np.ndarray  # (N, 3), in the frame of the given cameras when fixed
+    ids: np.ndarray  # (N,) the input's point ids, in the order of ``points``
+    projections: np.ndarray  # (K, 2, 3) orthonormal rows, given or estimated
+    objective: str = "stress"
+    cameras: tuple[ViewCamera, ...] = ()  # reprojection: each view's fitted camera
+    dropped: tuple[tuple[str, Any], ...] = ()  # (view name, point id): taken for wrong matches
+    unplaced: np.ndarray = field(default_factory=lambda: np.zeros(0))  # ids with no depth fixed
+    warnings: list[str] = field(default_factory=list)
+    facts: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def report(self) -> dict[str, Any]:
+        """The JSON report (:func:`mpe3d.harness.userdata.formats.write_result` writes it)."""
+        return {**self.facts, "warnings": self.warnings}
+
+
+def drop_missing(views: Sequence[dict], missing=None, source: str = "input"):
+    """The views without the observations at exactly ``missing`` (x, y), and a
+    note per view where observations sit exactly at (-1, -1) or (0, 0), the
+    marks that tracking files use for "not seen" (when ``missing`` is None)."""
+    notes, out = [], []
+    for k, view in enumerate(views):
+        if "xy" not in view:
+            out.append(view)
+            continue
+        xy = np.asarray(view["xy"])
+        name = view.get("name", k)
+        if xy.ndim != 2 or xy.shape != (len(view["ids"]), 2) or xy.dtype.kind not in "iuf":
+            out.append(view)  # observations_from says what is wrong with it
+            continue
+        if missing is not None:
+            keep = ~np.all(xy == np.asarray(missing, dtype=float), axis=1)
+            out.append({**view, "ids": np.asarray(view["ids"])[keep], "xy": xy[keep]})
+            continue
+        out.append(view)
+        for mark in LIKELY_MISSING:
+            hit = np.all(xy == mark, axis=1)
+            # (0, 0) is a pixel like any other, unless two points of one view sit on it
+            if np.count_nonzero(hit) > (1 if mark == (0.0, 0.0) else 0):
+                ids = np.asarray(view["ids"])[hit]
+                shown = ", ".join(map(str, ids[:10])) + (f", ... ({len(ids)} in all)"
+                                                         if len(ids) > 10 else "")
+                x, y = (int(v) for v in mark)
+                notes.append(f"{source}: view '{name}': {len(ids)} observations at exactly "
+                             f"({x}, {y}), likely missing markers (ids {shown}); "
+                             f"missing=({x}, {y}) (--missing={x},{y}) drops them")
+    return out, notes
+
+
+# -- checking ------------------------------------------------------------------
+
+def _check_dist(D: np.ndarray, n: int, where: str) -> np.ndarray:
+    if D.ndim != 2 or D.shape[0] != D.shape[1]:
+        raise MpeError(f"{where}: dist is {'x'.join(map(str, D.shape))}, not square")
+    if D.shape[0] != n:
+        raise MpeError(f"{where}: dist is {D.shape[0]}x{D.shape[0]} but ids has {n} entries; "
+                       "they must match")
+    D = finite_array(D, where, "dist")
+    scale = max(float(np.abs(D).max()), 1e-300)
+    asymmetry = float(np.abs(D - D.T).max())
+    if asymmetry > SYMMETRY_TOL * scale:
+        i, j = np.unravel_index(int(np.argmax(np.abs(D - D.T))), D.shape)
+        raise MpeError(f"{where}: dist is not symmetric (row {i}, column {j}: {D[i, j]:.6g} vs "
+                       f"{D[j, i]:.6g})")
+    if (D < 0).any():
+        i, j = np.argwhere(D < 0)[0]
+        raise MpeError(f"{where}: dist has a negative entry (row {i}, column {j}: {D[i, j]:.6g})")
+    if np.abs(np.diag(D)).max() > SYMMETRY_TOL * scale:
+        i = int(np.argmax(np.abs(np.diag(D))))
+        raise MpeError(f"{where}: dist has a non-zero diagonal (row {i}: {D[i, i]:.6g})")
+    return 0.5 * (D + D.T)
+
+
+def observations_from(views: Sequence[dict], projections=None, source: str = "input",
+                      projections_source: str = "projections"):
+    """Check user views and turn them into :class:`mpe3d.solvers.Observations`.
+
+    Returns the observations and the point ids (index -> the user's id).
+    """
+    if len(views) < 2:
+        raise MpeError(f"{source}: {len(views)} view(s); reconstruction needs at least 2")
+    if projections is not None and len(projections) != len(views):
+        raise MpeError(f"{projections_source}: {len(projections)} matrices for {len(views)} views")
+    labels = [np.asarray(v["ids"]).astype(str) for v in views]
+    for k, (view, ids) in enumerate(zip(views, labels)):
+        where = f"{source}: view '{view.get('name', k)}'"
+        if len(ids) < 3:
+            raise MpeError(f"{where} has {len(ids)} point(s); each view needs at least 3")
+        unique, counts = np.unique(ids, return_counts=True)
+        if (counts > 1).any():
+            raise MpeError(f"{where}: point '{unique[counts > 1][0]}' appears twice")
+    all_ids, index = np.unique(np.concatenate(labels), return_inverse=True)
+    out, start = [], 0
+    for k, (view, ids) in enumerate(zip(views, labels)):
+        where = f"{source}: view '{view.get('name', k)}'"
+        rows = index[start:start + len(ids)]
+        start += len(ids)
+        if "xy" in view:
+            xy = finite_array(view["xy"], where, "xy")
+            if xy.shape != (len(ids), 2):
+                raise MpeError(f"{where}: xy is {'x'.join(map(str, xy.shape))}, expected "
+                               f"{len(ids)}x2 (one row per id)")
+            out.append(View(ids=rows, coordinates=xy))
+        else:
+            D = _check_dist(np.asarray(view["dist"]), len(ids), where)
+            out.append(View(ids=rows, distances=D))
+    obs = Observations(n_points=len(all_ids), views=tuple(out), projections=projections)
+    return obs, _as_ids(all_ids, source)
+
+
+def _as_ids(labels: np.ndarray, source: str) -> np.ndarray:
+    """Integer ids back to integers; anything else stays text."""
+    try:
+        numbers = labels.astype(np.int64)
+    except ValueError:
+        return labels
+    except OverflowError:
+        big = next(label for label in labels if _overflows(label))
+        raise MpeError(f"{source}: point id '{big}' is an integer too large for 64 bits; "
+                       "use ids below 2**63, or text ids") from None
+    return numbers if np.array_equal(numbers.astype(str), labels) else labels
+
+
+def _overflows(label: str) -> bool:
+    try:
+        return abs(int(label)) >= 2 ** 63
+    except ValueError:
+        return False
+
+
+
+# -- solving -------------------------------------------------------------------
+
+@dataclass
+class Problem:
+    """User input, read and checked: what the solve needs, nothing computed yet."""
+
+    observations: Observations
+    ids: np.ndarray
+    solver: str
+    loss: str
+    random_state: Any
+    objective: str = "stress"
+    camera: str = "auto"
+    cameras: np.ndarray | None = None  # known: (K, 2, 3) rows or (K, 3, 4) pinhole matrices
+    outlier_threshold: float = bundle.OUTLIER_THRESHOLD
+    principal_point: tuple | None = None
+    view_names: list = field(default_factory=list)
+    notes: list = field(default_factory=list)
+
+
+def _check_random_state(random_state) -> None:
+    if isinstance(random_state, np.random.Generator):
+        return
+    if isinstance(random_state, bool) or not isinstance(random_state, (int, np.integer)) \
+            or random_state < 0:
+        raise MpeError(f"random_state: expected an integer >= 0 or a numpy Generator, "
+                       f"got {random_state!r}")
+
+
+def _check_pair(value, name):
+    if value is not None and (np.shape(value) != (2,) or not np.all(np.isfinite(value))):
+        raise MpeError(f"{name}: expected two finite numbers x, y, got {value!r}")
+
+
+def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
+    if solver not in SOLVERS:
+        raise MpeError(f"solver: '{solver}' is not one of {', '.join(SOLVERS)}")
+    if objective is not None and objective not in OBJECTIVES:
+        raise MpeError(f"objective: '{objective}' is not one of {', '.join(OBJECTIVES)}")
+    if camera not in CAMERA_CHOICES:
+        raise MpeError(f"camera: '{camera}' is not one of {', '.join(CAMERA_CHOICES)}")
+    if loss not in REPROJECTION_LOSSES:
+        raise MpeError(f"loss: '{loss}' is not one of {', '.join(REPROJECTION_LOSSES)}")
+    if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)) \
+            or not outlier_threshold > 0:
+        raise MpeError(f"outlier_threshold: expected a number > 0 (inf keeps every observation), "
+                       f"got {outlier_threshold!r}")
+    _check_pair(missing, "missing")
+
+
+def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
+            loss: str = "l2", random_state=0, objective: str | None = None,
+            camera: str = "auto", missing=None,
+            outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None) -> Problem:
+    """Read and check every input of :func:`reconstruct` without solving anything."""
+    _check_choices(solver, loss, objective, camera, outlier_threshold, missing)
+    _check_pair(principal_point, "principal_point")
+    _check_random_state(random_state)
+    source = str(views) if isinstance(views, (str, Path)) else "views"
+    if isinstance(views, (str, Path)):
+        views = read_views(views)
+    projections_source = "projections"
+    if isinstance(projections, (str, Path)):
+        projections_source, projections = str(projections), read_projections(projections)
+    elif projections is not None:
+        projections = np.asarray(projections, dtype=float)
+        projections = projections if projections.shape[1:] == (3, 4) else projections[:, :2]
+    views, notes = drop_missing(views, missing, source)
+    centres = [view.get("principal_point") for view in views]
+    if principal_point is None and centres and all(c is not None for c in centres):
+        principal_point = tuple(float(v) for v in centres[0])  # a COLMAP model's cameras
+    coordinates = all("xy" in view for view in views)
+    if objective is None:
+        objective = "reprojection" if coordinates else "stress"
+    if objective == "reprojection" and not coordinates:
+        raise MpeError(f"{source}: objective='reprojection' needs 2D coordinates (xy) in every "
+                       "view; distance matrices allow objective='stress' only")
+    if objective == "stress" and loss != "l2" and solver != "refine":
+        raise MpeError(f"loss='{loss}' needs solver='refine' (got solver='{solver}')")
+    if objective == "stress" and loss not in STRESS_LOSSES:
+        raise MpeError(f"loss='{loss}' is for objective='reprojection'; the stress takes "
+                       f"{', '.join(STRESS_LOSSES)}")
+    pinhole = projections is not None and projections.shape[1:] == (3, 4)
+    if pinhole and objective == "stress":
+        raise MpeError(f"{projections_source}: 3x4 pinhole cameras need objective='reprojection'; "
+                       "the stress takes orthographic projections (2x3 or 3x3)")
+    obs, ids = observations_from(views, None if pinhole else projections, source,
+                                 projections_source)
+    if pinhole and len(projections) != obs.n_views:
+        raise MpeError(f"{projections_source}: {len(projections)} matrices for {obs.n_views} views")
+    names = [str(view.get("name", k)) for k, view in enumerate(views)]
+    return Problem(obs, ids, solver, loss, random_state, objective, camera, projections,
+                   float(outlier_threshold), principal_point, names, notes)
+
+
+def solve(problem: Problem) -> Result:
+    """Solve a prepared problem and report on the result."""
+    start = time.perf_counter()
+    with collect_notes(labels=problem.ids) as notes:  # notes about the input go in the report
+        if problem.objective == "reprojection":
+            tracks = bundle.Tracks.from_observations(problem.observations)
+            fit = _solve_reprojection(problem, tracks)
+        else:
+            options = {"loss": problem.loss} if problem.solver == "refine" else {}
+            fit = solvers.solve(problem.solver, problem.observations,
+                                random_state=problem.random_state, **options)
+    runtime = time.perf_counter() - start
+    warnings = problem.notes + notes + stop_notes(fit)
+    if problem.objective == "reprojection":
+        return _reprojection_result(problem, tracks, fit, runtime, warnings)
+    return _stress_result(problem, fit, runtime, warnings)
+
+
+def _solve_reprojection(problem: Problem, tracks):
+    check_geometry(problem.observations)  # one line for what cannot determine a shape
+    if problem.cameras is not None:
+        return bundle.known_cameras(tracks, problem.cameras, loss=problem.loss,
+                                    outlier_threshold=problem.outlier_threshold)
+    return bundle.bundle_adjust(tracks, problem.camera, loss=problem.loss,
+                                outlier_threshold=problem.outlier_threshold,
+                                principal_point=problem.principal_point)
+
+
+def stop_notes(fit) -> list[str]:
+    """A line when the solve stopped at its iteration cap instead of converging."""
+    converged = getattr(fit, "converged", None)
+    if converged is None:  # a stress solver: its termination says
+        text = str(fit.termination).lower()
+        converged = not ("limit" in text or "max_iter" in text)
+    return [] if converged else [f"the solve did not converge ({fit.termination}): the cloud "
+                                 "may be short of the optimum"]
+
+
+def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
+                loss: str = "l2", random_state=0, objective: str | None = None,
+                camera: str = "auto", missing=None,
+                outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None) -> Result:
+    """Rebuild a 3D cloud from user views.
+
+    Parameters
+    ----------
+    views : a path (CSV, NPZ, JSON, folder) or a list of ``{"ids", "xy" | "dist"}`` dicts
+        What each view saw: its point ids and their 2D coordinates or distance matrix.
+    projections : None, a path, or an array of K 2x3 / 3x3 / 3x4 matrices, default None
+        Known cameras (the fixed setting): orthographic rows or rotations, or
+        3x4 pinhole matrices (reprojection only). None estimates them.
+    solver : {"refine", "factorize", "sgd"}, default "refine"
+        The stress solver (``objective="stress"``).
+    loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
+        rho of the squared residual (reprojection, scale 1 px), or refine's loss
+        of the stress (l2, huber, soft_l1).
+    random_state : int >= 0 or Generator, default 0
+    objective : {None, "reprojection", "stress"}, default None
+        None: the reprojection error for coordinates (bundle adjustment), the
+        3DMPE stress (paper Eq. 1) for distance matrices.
+    camera : {"auto", "orthographic", "scaled", "perspective"}, default "auto"
+        The camera model of the reprojection objective; "auto" fits the scaled
+        (weak-perspective) and the pinhole camera and keeps the pinhole when it
+        explains the keypoints clearly better.
+    missing : None or (x, y), default None
+        Observations at exactly (x, y) are markers for "not seen" and dropped.
+    outlier_threshold : float, default 20
+        Reprojection: observations beyond this many robust sigmas are taken for
+        wrong matches and dropped (listed in the report); ``inf`` keeps all.
+    principal_point : None or (x, y), default None
+        The pinhole camera's principal point in pixels (the image centre);
+        None takes the centre of the keypoints' bounding box.
+    """
+    return solve(prepare(views, projections, solver, loss, random_state, objective, camera,
+                         missing, outlier_threshold, principal_point))
+
+
+def _stress_result(problem: Problem, rec, runtime: float, warnings: list[str]) -> Result:
+    from mpe3d.solvers.stress import Stress
+
+    obs, ids = problem.observations, problem.ids
+    stress = Stress(obs)
+    projections = np.asarray(rec.projections)
+    rms = stress.view_rms(rec.points, projections)
+    seen = obs.visibility().sum(axis=0)
+    unplaced = ids[seen < 2]
+    facts = {
+        "points": int(obs.n_points), "views": int(obs.n_views), "objective": "stress",
+        "setting": "fixed" if obs.fixed else "variable", "solver": problem.solver,
+        "loss": problem.loss, "stress": float(stress.value(rec.points, projections)),
+        "stress_pairs": "sparse (k-NN and random pairs per view)" if stress.sparse else "all",
+        "rms_residual_per_view": [float(r) for r in rms],
+        "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist()},
+        "projections": projections.tolist(),
+        "iterations": int(rec.iterations), "termination": rec.termination,
+        "runtime_s": runtime, "code": code_identity(),
+    }
+    return Result(points=rec.points, ids=ids, projections=projections, objective="stress",
+                  unplaced=unplaced, warnings=warnings, facts=facts)
+
+
+def _reprojection_result(problem: Problem, tracks, fit, runtime: float,
+                         warnings: list[str]) -> Result:
+    """Reprojection RMS per view in pixels, the cameras (and as ``projections``
+    their rotations' first rows, or the given 3x4 matrices), the dropped
+    observations."""
+    obs, ids, names = problem.observations, problem.ids, problem.view_names
+    length2 = np.sum(fit.residuals ** 2, axis=1)
+    kept = fit.counted  # the kept observations of the placed points
+    per_view = [float(np.sqrt(np.mean(length2[(tracks.view == k) & kept])))
+                if np.any((tracks.view == k) & kept) else None for k in range(obs.n_views)]
+    dropped = tuple((names[k], _plain(ids[i]))
+                    for k, i in zip(tracks.view[fit.dropped], tracks.point[fit.dropped]))
+    unplaced = ids[~fit.info["placed"]]
+    weak = int(fit.info["weak"].sum())
+    cameras = tuple(ViewCamera.from_numbers(name, numbers)
+                    for name, numbers in zip(names, fit.cameras.matrices()))
+    projections = np.asarray(fit.cameras.current_rotations()[:, :2]
+                             if fit.cameras.model != "matrix" else problem.cameras)
+    facts = {
+        "points": int(obs.n_points), "views": int(obs.n_views), "objective": "reprojection",
+        "setting": "fixed" if problem.cameras is not None else "variable",
+        "camera": fit.camera, "loss": problem.loss,
+        "reprojection_rms_px": fit.rms(), "reprojection_rms_px_all": fit.rms(np.ones_like(kept)),
+        "rms_px_per_view": per_view,
+        "rms_px_by_camera": {model: float(v) for model, v in fit.info["rms_by_camera"].items()},
+        "affine_rms_px": None if not np.isfinite(fit.affine_rms) else float(fit.affine_rms),
+        "cameras": [{"view": c.view, **c.numbers()} for c in cameras],
+        "projections": projections.tolist(),
+        "dropped": {"count": len(dropped), "threshold_sigmas": problem.outlier_threshold,
+                    "observations": [{"view": v, "point": i} for v, i in dropped]},
+        "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist(),
+                     "weak_geometry": weak,  # of them: placed, but their depth is not fixed
+                     "rule": f"seen in fewer than 2 views, or rays meeting under "
+                             f"{MIN_RAY_ANGLE:g} degrees, or farther than {FAR_FACTOR:g} times "
+                             "the cloud's median radius"},
+        "converged": bool(fit.converged), "iterations": int(fit.iterations),
+        "termination": fit.termination, "runtime_s": runtime, "code": code_identity(),
+    }
+    return Result(points=fit.points, ids=ids, projections=projections, objective="reprojection",
+                  cameras=cameras, dropped=dropped, unplaced=unplaced, warnings=warnings,
+                  facts=facts)
+
+
+def _plain(value):
+    return value.item() if hasattr(value, "item") else value

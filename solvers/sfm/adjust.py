@@ -1,0 +1,227 @@
+"""Bundle adjustment's solver: Levenberg-Marquardt with the points eliminated.
+
+Minimises the (robust) reprojection error E(X, C) = sum_t rho(||u_k(x_i; C_k)
+- z_t||^2) over the points and the cameras of :mod:`.cameras`, with the
+Schur complement: a 3x3 block per point, a dense K * (5..7) camera system.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import NamedTuple
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+from scipy.sparse import csr_matrix
+from threadpoolctl import threadpool_limits
+
+from mpe3d.solvers.linalg import sum_by
+from mpe3d.solvers.sfm.cameras import Cameras
+from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, rms
+
+
+class Fit(NamedTuple):
+    """One solve: the points, the cameras, the RMS residual (pixels) after each
+    iteration, and whether it converged."""
+
+    X: np.ndarray
+    cameras: Cameras
+    history: np.ndarray
+    converged: bool
+
+
+REPROJECTION_LOSSES = ("l2", "huber", "soft_l1", "cauchy")
+
+
+_DENSE_Y = 4_000_000  # entries of the Schur factor Y below which it is made dense
+
+
+def one_blas_thread(func):
+    """Run ``func`` on one BLAS thread: its matrices are small (3x3 blocks, a
+    K*6 camera system), where threads cost more than they give (backyard, 100
+    views: 2.8 s on one thread, 5.4 s on two)."""
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        with threadpool_limits(1):
+            return func(*args, **kwargs)
+    return wrapper
+
+
+def _robust_weights(squared: np.ndarray, loss: str, scale: float):
+    """rho(s) summed and rho'(s) per observation, s = ||r||^2 / scale^2 (scipy's losses)."""
+    s = squared / scale ** 2
+    if loss == "l2":
+        return float(squared.sum()), np.ones_like(s)
+    if loss == "huber":
+        root = np.sqrt(np.maximum(s, 1))
+        rho, weight = np.where(s <= 1, s, 2 * root - 1), np.where(s <= 1, 1.0, 1 / root)
+    elif loss == "soft_l1":
+        rho, weight = 2 * (np.sqrt(1 + s) - 1), 1 / np.sqrt(1 + s)
+    else:  # cauchy
+        rho, weight = np.log1p(s), 1 / (1 + s)
+    return float(scale ** 2 * rho.sum()), weight
+
+
+class _Structure:
+    """Index arrays of the bundle's normal equations, fixed for one set of tracks:
+    each observation's camera columns, where its block of the camera system
+    goes, and the sparsity of Y (rows: a point's 3 axes; columns: cameras)."""
+
+    def __init__(self, tracks: Tracks, cameras: Cameras):
+        K, pv, ns = tracks.n_views, cameras.per_view, cameras.shared.size
+        self.size = K * pv + ns
+        self.cols = np.concatenate([pv * tracks.view[:, None] + np.arange(pv),
+                                    np.broadcast_to(K * pv + np.arange(ns), (len(tracks.view), ns))],
+                                   axis=1)  # (T, pv + ns)
+        # each (observation, axis) gives the c entries of row 3 * point + axis
+        c = self.cols.shape[1]
+        self.y_order = row_order(tracks.point, tracks.n_points)
+        counts = np.repeat(np.bincount(tracks.point, minlength=tracks.n_points), 3) * c
+        self.y_indptr = np.concatenate([[0], np.cumsum(counts)])
+        self.y_indices = self.cols[self.y_order // 3].ravel()
+        # a view's observations share their camera columns: its block of the
+        # camera system is one c x c product, placed at these columns
+        self.view_rows = [np.flatnonzero(tracks.view == k) for k in range(K)]  # once, not per step
+        self.view_cols = [np.concatenate([pv * k + np.arange(pv), K * pv + np.arange(ns)])
+                          for k in range(K)]
+
+    def camera_system(self, weight: np.ndarray, d_c: np.ndarray) -> np.ndarray:
+        """V = sum_t d_c^T w d_c, accumulated view by view (no T x c x c array)."""
+        V = np.zeros((self.size, self.size))
+        c = d_c.shape[2]
+        for rows, cols in zip(self.view_rows, self.view_cols):
+            if len(rows):
+                J = d_c[rows].reshape(-1, c)
+                V[np.ix_(cols, cols)] += (np.repeat(weight[rows], 2)[:, None] * J).T @ J
+        return V
+
+
+def row_order(point: np.ndarray, n_points: int) -> np.ndarray:
+    """argsort(3 * point[:, None] + [0, 1, 2]) (stable), as a counting sort:
+    row 3p + a lists (t, a) for the observations t of point p in order."""
+    by_point = np.argsort(point, kind="stable")
+    counts = np.bincount(point, minlength=n_points)
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    p = point[by_point]
+    rank = np.arange(len(point)) - start[p]  # position within its point's observations
+    order = np.empty(3 * len(point), dtype=np.int64)
+    for a in range(3):
+        order[3 * start[p] + a * counts[p] + rank] = 3 * by_point + a
+    return order
+
+
+def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
+           loss_scale: float = 1.0, max_iter: int = 100, tol: float = 1e-12,
+           frozen: np.ndarray | None = None) -> Fit:
+    """Levenberg-Marquardt on E(X, C) with the points eliminated (Schur complement).
+
+    Each iteration solves the damped normal equations of the (robustly
+    reweighted) Gauss-Newton step: the 3x3 block of every point is inverted
+    and the reduced camera system, K * (5..7) unknowns, solved densely. That
+    is bundle adjustment's standard solver and why its cost is linear in the
+    observations.
+
+    ``frozen`` (a mask over ``cameras.vector()``) holds camera parameters
+    fixed: known rotations.
+    """
+    structure = _Structure(tracks, cameras)
+    free = np.ones(structure.size) if frozen is None else (~np.asarray(frozen)).astype(float)
+    N, view, point = tracks.n_points, tracks.view, tracks.point
+    unseen = np.bincount(point, minlength=N) == 0  # points without observations stay put
+    cameras = cameras.reanchored()
+    lam = 1e-4
+
+    def evaluate(Xv, cam):
+        r = cam.project(Xv, view, point) - tracks.z
+        cost, weight = _robust_weights(np.sum(r ** 2, axis=1), loss, loss_scale)
+        return r, (cost if np.isfinite(cost) else np.inf), weight
+
+    r, cost, weight = evaluate(X, cameras)
+    if not np.isfinite(cost) or not np.all(np.isfinite(X)):  # e.g. a point behind a camera
+        return Fit(X, cameras, np.array([np.inf]), False)
+    history, converged, nu = [rms(r)], False, 2.0
+    if history[0] <= EXACT * image_size(tracks):  # exact already: nothing to descend
+        return Fit(X, cameras, np.array(history), True)
+    for _ in range(max_iter):
+        d_x, d_view, d_shared = cameras.jacobian_blocks(X, view, point)
+        d_c = np.concatenate([d_view, d_shared], axis=2)  # (T, 2, c)
+        d_c = d_c * free[structure.cols][:, None, :]
+        wr = weight[:, None] * r
+        wd_x = weight[:, None, None] * d_x  # batched matmuls: far faster than 3-operand einsum
+        wd_xt = wd_x.transpose(0, 2, 1)
+        U = sum_by(point, wd_xt @ d_x, N)
+        U[unseen] = np.eye(3)
+        W = wd_xt @ d_c  # (T, 3, c)
+        g_x = sum_by(point, np.einsum("tai,ta->ti", d_x, wr), N)
+        g_c = np.bincount(structure.cols.ravel(), minlength=structure.size,
+                          weights=np.einsum("taj,ta->tj", d_c, wr).ravel())
+        V = structure.camera_system(weight, d_c)
+        while True:
+            step = _damped_step(U, V, W, g_x, g_c, lam, structure, point)
+            if step is not None:
+                dx, dc, predicted = step
+                trial_cam = cameras.with_vector(cameras.vector() + dc)
+                trial_X = X + dx
+                r_new, cost_new, weight_new = evaluate(trial_X, trial_cam)
+                if np.isfinite(cost_new) and cost_new < cost:
+                    break
+            if lam > 1e16 or (step is not None and predicted <= 1e-15 * max(cost, 1e-300)):
+                # no step lowers the cost any more: a minimum, to working precision
+                return Fit(X, cameras, np.array(history), True)
+            lam, nu = lam * nu, nu * 2
+        # Nielsen's update: shrink the damping as far as the model predicted well
+        gain = (cost - cost_new) / max(predicted, 1e-300)
+        lam, nu = lam * max(1 / 3, 1 - (2 * gain - 1) ** 3), 2.0
+        decrease = cost - cost_new
+        X, cameras, r, weight, cost = trial_X, trial_cam.reanchored(), r_new, weight_new, cost_new
+        history.append(rms(r))
+        small_step = np.sqrt(np.sum(dx ** 2) + np.sum(dc ** 2)) <= tol * (1 + np.sqrt(np.sum(X ** 2)))
+        if decrease <= tol * max(cost + decrease, 1e-300) or small_step or cost <= 1e-28:
+            converged = True
+            break
+    return Fit(X, cameras, np.array(history), converged)
+
+
+def _schur_term(U_damped, W, structure, point):
+    """sum_i W_i^T U_i^-1 W_i = Y^T Y, with Y the sparse stack of U_i^-1/2 W_i."""
+    values, vectors = np.linalg.eigh(U_damped)
+    root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
+    data = np.matmul(root[point], W).reshape(-1, W.shape[2])[structure.y_order]
+    Y = csr_matrix((data.ravel(), structure.y_indices, structure.y_indptr),
+                   shape=(3 * len(U_damped), structure.size))
+    Y.sum_duplicates()  # the shared columns (focal length) recur within a row
+    if Y.shape[0] * Y.shape[1] <= _DENSE_Y:  # few points: BLAS on the dense Y is faster
+        Y = Y.toarray()
+        return Y.T @ Y
+    return (Y.T @ Y).toarray()
+
+
+def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
+    """The Levenberg-Marquardt step (dx, dc) by the Schur complement and the cost
+    decrease the Gauss-Newton model predicts for it, or None if the damped
+    reduced system is not positive definite."""
+    D_x = np.einsum("nii->ni", U)
+    D_x = D_x + 1e-12 * D_x.max(axis=1, keepdims=True)
+    D_c = np.diag(V) + 1e-12 * max(np.diag(V).max(initial=0.0), 1e-300)
+    U_damped = U.copy()
+    U_damped[:, np.arange(3), np.arange(3)] += lam * D_x
+    try:
+        U_inv = np.linalg.inv(U_damped)
+    except np.linalg.LinAlgError:
+        return None
+    S = V - _schur_term(U_damped, W, structure, point) if structure.size else V
+    S[np.diag_indices_from(S)] += lam * D_c
+    Ug = np.einsum("nij,nj->ni", U_inv, g_x)
+    rhs = g_c - np.bincount(structure.cols.ravel(), minlength=structure.size,
+                            weights=np.einsum("tic,ti->tc", W, Ug[point]).ravel())
+    if not (np.all(np.isfinite(S)) and np.all(np.isfinite(rhs))):
+        return None
+    try:
+        dc = -cho_solve(cho_factor(S), rhs) if len(rhs) else rhs  # known cameras: none
+    except np.linalg.LinAlgError:
+        return None
+    coupling = sum_by(point, np.einsum("tic,tc->ti", W, dc[structure.cols]), len(U))
+    dx = -np.einsum("nij,nj->ni", U_inv, g_x + coupling)
+    # cost = sum of rho: the model's decrease is -g.d + lam d.D.d (g = J^T W r)
+    predicted = float(-np.sum(g_x * dx) - g_c @ dc + lam * (np.sum(D_x * dx ** 2) + D_c @ dc ** 2))
+    return dx, dc, predicted

@@ -1,0 +1,254 @@
+"""Camera models for keypoints: how a 3D point x lands on a view's image, in pixels.
+
+Three models, from the paper's to a real camera's:
+
+* ``orthographic`` (the paper's): u = R[:2] x + t, a rotation and a 2D
+  translation per view, image units shared by all views;
+* ``scaled`` (weak perspective): u = s R[:2] x + t, plus a scale per view,
+  since real views differ in zoom and distance;
+* ``perspective`` (pinhole): u = f (R x + T)[:2] / (R x + T)[2] + c, with a
+  3D translation per view, the focal length f per view or shared, and the
+  principal point c fixed (given, or the centre of the keypoints).
+
+Rotations are R = R0 Exp([w]), with w the parameter and R0 the last
+anchor, so that no parametrisation singularity is ever near: the Jacobian
+d(R v)/dw = -R [v]x J_r(w) uses SO(3)'s right Jacobian.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mpe3d.solvers.linalg import matvec_by_group
+
+CAMERAS = ("orthographic", "scaled", "perspective")
+# The affine camera u = A x + t (A any 2x3) is no camera model a user picks: it is
+# the start, and the floor that no metric model's error can go below.
+AFFINE = "affine"
+# Known 3x4 camera matrices, u = (P [x; 1])[:2] / (P [x; 1])[2]: nothing to fit.
+MATRIX = "matrix"
+
+
+def hat(v: np.ndarray) -> np.ndarray:
+    """[v]x for each row of ``v`` (..., 3) -> (..., 3, 3)."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def _series(theta: np.ndarray):
+    """(sin t)/t, (1 - cos t)/t^2 and (t - sin t)/t^3, stable near t = 0."""
+    small = theta < 1e-4
+    t = np.where(small, 1.0, theta)
+    t2 = theta ** 2
+    a = np.where(small, 1 - t2 / 6, np.sin(t) / t)
+    b = np.where(small, 0.5 - t2 / 24, (1 - np.cos(t)) / t ** 2)
+    c = np.where(small, 1 / 6 - t2 / 120, (t - np.sin(t)) / t ** 3)
+    return a, b, c
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rodrigues: rotation vectors (K, 3) -> rotations (K, 3, 3)."""
+    a, b, _ = _series(np.linalg.norm(w, axis=-1))
+    W = hat(w)
+    return np.eye(3) + a[:, None, None] * W + b[:, None, None] * W @ W
+
+
+def right_jacobian(w: np.ndarray) -> np.ndarray:
+    """J_r(w) of SO(3), (K, 3) -> (K, 3, 3)."""
+    _, b, c = _series(np.linalg.norm(w, axis=-1))
+    W = hat(w)
+    return np.eye(3) - b[:, None, None] * W + c[:, None, None] * W @ W
+
+
+def complete_rotation(P: np.ndarray) -> np.ndarray:
+    """(K, 2, 3) orthonormal rows -> (K, 3, 3) rotations with those first rows."""
+    return np.concatenate([P, np.cross(P[:, 0], P[:, 1])[:, None]], axis=1)
+
+
+@dataclass
+class Cameras:
+    """K cameras of one model, as their anchor rotations and their parameters.
+
+    ``params`` per view: ``w`` (3) then ``t`` (2; 3 for perspective), then
+    ``log s`` for scaled and ``log f`` for perspective with per-view focal
+    lengths; a shared focal length is the one global parameter.
+    """
+
+    model: str
+    rotations: np.ndarray  # (K, 3, 3) anchors R0; (K, 3, 4) camera matrices for MATRIX
+    params: np.ndarray  # (K, per_view)
+    shared: np.ndarray  # (0,) or (1,) = [log f]
+    principal_point: np.ndarray  # (2,), perspective only
+
+    @property
+    def per_view(self) -> int:
+        return self.params.shape[1]
+
+    def vector(self) -> np.ndarray:
+        return np.concatenate([self.params.ravel(), self.shared])
+
+    def with_vector(self, v: np.ndarray) -> "Cameras":
+        K = len(self.rotations)
+        return Cameras(self.model, self.rotations, v[:K * self.per_view].reshape(K, -1),
+                       v[K * self.per_view:], self.principal_point)
+
+    def reanchored(self) -> "Cameras":
+        """The same cameras with w folded into R0 (w = 0 again)."""
+        if self.model in (AFFINE, MATRIX):
+            return self
+        params = self.params.copy()
+        params[:, :3] = 0.0
+        return Cameras(self.model, self.current_rotations(), params, self.shared.copy(),
+                       self.principal_point)
+
+    def current_rotations(self) -> np.ndarray:
+        return self.rotations @ exp_so3(self.params[:, :3])
+
+    def focal(self) -> np.ndarray:
+        """f per view (perspective)."""
+        K = len(self.rotations)
+        if self.shared.size:
+            return np.full(K, np.exp(self.shared[0]))
+        return np.exp(self.params[:, 6])
+
+    def scale(self) -> np.ndarray:
+        """The image scale per view: s (scaled), 1 (orthographic), f / depth of
+        the origin (perspective)."""
+        if self.model == "scaled":
+            return np.exp(self.params[:, 5])
+        if self.model == "orthographic":
+            return np.ones(len(self.rotations))
+        return self.focal() / self.params[:, 5]
+
+    def project(self, X: np.ndarray, view: np.ndarray, point: np.ndarray) -> np.ndarray:
+        """u_t for the observations (view[t], point[t]) of the points X, (T, 2)."""
+        if self.model == AFFINE:
+            A = self.params[:, :6].reshape(-1, 2, 3)
+            return matvec_by_group(A, view, X[point]) + self.params[view, 6:8]
+        if self.model == MATRIX:
+            p = matvec_by_group(self.rotations[:, :, :3], view, X[point]) + self.rotations[view, :, 3]
+            return p[:, :2] / p[:, 2:3]  # a matrix's overall sign is the user's: no cheirality
+        R = self.current_rotations()
+        q = matvec_by_group(R, view, X[point])
+        if self.model != "perspective":
+            s = self.scale()[view, None]
+            return s * q[:, :2] + self.params[view, 3:5]
+        p = q + self.params[view, 3:6]
+        depth = np.where(p[:, 2:3] > 0, p[:, 2:3], np.nan)  # behind the camera: no image
+        return self.focal()[view, None] * p[:, :2] / depth + self.principal_point
+
+    def jacobian_blocks(self, X, view, point):
+        """du_t/dx_i (T, 2, 3) and du_t/d(view parameters) (T, 2, per_view),
+        plus du_t/d(shared) (T, 2, n_shared)."""
+        T = len(view)
+        x = X[point]
+        if self.model == AFFINE:
+            d_view = np.zeros((T, 2, 8))
+            d_view[:, 0, 0:3], d_view[:, 1, 3:6] = x, x
+            d_view[:, 0, 6] = d_view[:, 1, 7] = 1.0
+            return self.params[view, :6].reshape(T, 2, 3), d_view, np.zeros((T, 2, 0))
+        if self.model == MATRIX:
+            P = self.rotations[view]
+            p = np.einsum("tij,tj->ti", P[:, :, :3], x) + P[:, :, 3]
+            u = p[:, :2] / p[:, 2:3]
+            d_x = (P[:, :2, :3] - u[:, :, None] * P[:, 2:3, :3]) / p[:, 2:3, None]
+            return d_x, np.zeros((T, 2, 0)), np.zeros((T, 2, 0))
+        R = self.current_rotations()[view]
+        q = np.einsum("tij,tj->ti", R, x)
+        dq_dw = -R @ hat(x) @ right_jacobian(self.params[:, :3])[view]
+        d_view = np.zeros((T, 2, self.per_view))
+        d_shared = np.zeros((T, 2, self.shared.size))
+        if self.model != "perspective":
+            s = self.scale()[view, None, None]
+            d_x = s * R[:, :2]
+            d_view[:, :, :3] = s * dq_dw[:, :2]
+            d_view[:, 0, 3] = d_view[:, 1, 4] = 1.0
+            if self.model == "scaled":
+                d_view[:, :, 5] = s[:, :, 0] * q[:, :2]
+            return d_x, d_view, d_shared
+        p = q + self.params[view, 3:6]
+        f = self.focal()[view]
+        du_dp = np.zeros((T, 2, 3))
+        du_dp[:, 0, 0] = du_dp[:, 1, 1] = f / p[:, 2]
+        du_dp[:, :, 2] = -f[:, None] * p[:, :2] / p[:, 2:3] ** 2
+        d_x = du_dp @ R
+        d_view[:, :, :3] = du_dp @ dq_dw
+        d_view[:, :, 3:6] = du_dp
+        d_f = f[:, None] * p[:, :2] / p[:, 2:3]  # du/dlog f
+        if self.shared.size:
+            d_shared[:, :, 0] = d_f
+        else:
+            d_view[:, :, 6] = d_f
+        return d_x, d_view, d_shared
+
+    def projection_matrices(self) -> np.ndarray:
+        """(K, 3, 4): u ~ P [x; 1], with last row (0, 0, 0, 1) for the affine models."""
+        K = len(self.rotations)
+        if self.model == MATRIX:
+            return self.rotations
+        P = np.zeros((K, 3, 4))
+        P[:, 2, 3] = 1.0
+        if self.model == AFFINE:
+            P[:, :2, :3] = self.params[:, :6].reshape(K, 2, 3)
+            P[:, :2, 3] = self.params[:, 6:8]
+            return P
+        R = self.current_rotations()
+        if self.model == "perspective":
+            intrinsics = np.zeros((K, 3, 3))
+            intrinsics[:, 0, 0] = intrinsics[:, 1, 1] = self.focal()
+            intrinsics[:, :2, 2], intrinsics[:, 2, 2] = self.principal_point, 1.0
+            return intrinsics @ np.concatenate([R, self.params[:, 3:6, None]], axis=2)
+        P[:, :2, :3] = self.scale()[:, None, None] * R[:, :2]
+        P[:, :2, 3] = self.params[:, 3:5]
+        return P
+
+    def matrices(self) -> list[dict]:
+        """Each view's camera as plain numbers, for the report."""
+        if self.model == MATRIX:
+            return [{"P": P.tolist()} for P in self.rotations]
+        R, P = self.current_rotations(), self.projection_matrices()
+        out = []
+        for k in range(len(R)):
+            if self.model == "perspective":
+                out.append({"focal_px": float(self.focal()[k]), "rotation": R[k].tolist(),
+                            "translation": self.params[k, 3:6].tolist(), "P": P[k].tolist()})
+            else:
+                out.append({"scale": float(self.scale()[k]), "rotation": R[k].tolist(),
+                            "translation_px": self.params[k, 3:5].tolist(),
+                            "P": (self.scale()[k] * R[k, :2]).tolist()})
+        return out
+
+
+def known_matrices(P: np.ndarray) -> Cameras:
+    """Cameras fixed to the 3x4 matrices P (K, 3, 4)."""
+    P = np.asarray(P, dtype=float)
+    return Cameras(MATRIX, P, np.zeros((len(P), 0)), np.zeros(0), np.zeros(2))
+
+
+def affine_cameras(model: str, P: np.ndarray, scale: np.ndarray, t: np.ndarray,
+                   focal: float | None = None, principal_point=None,
+                   shared_focal: bool = True) -> Cameras:
+    """Cameras of ``model`` from orthonormal rows P (K, 2, 3), per-view scales
+    and 2D translations: exact for orthographic and scaled; for perspective,
+    the pinhole camera at depth f / s that matches them at the origin."""
+    K = len(P)
+    R0 = complete_rotation(P)
+    if model == "orthographic":
+        params = np.concatenate([np.zeros((K, 3)), t], axis=1)
+        return Cameras(model, R0, params, np.zeros(0), np.zeros(2))
+    if model == "scaled":
+        params = np.concatenate([np.zeros((K, 3)), t, np.log(scale)[:, None]], axis=1)
+        return Cameras(model, R0, params, np.zeros(0), np.zeros(2))
+    c = np.asarray(principal_point, dtype=float)
+    depth = focal / scale
+    T = np.concatenate([(t - c) / scale[:, None], depth[:, None]], axis=1)
+    if shared_focal:
+        params = np.concatenate([np.zeros((K, 3)), T], axis=1)
+        return Cameras(model, R0, params, np.array([np.log(focal)]), c)
+    params = np.concatenate([np.zeros((K, 3)), T, np.full((K, 1), np.log(focal))], axis=1)
+    return Cameras(model, R0, params, np.zeros(0), c)

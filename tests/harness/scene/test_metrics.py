@@ -1,0 +1,61 @@
+import numpy as np
+import pytest
+from scipy.optimize import linear_sum_assignment
+from scipy.spatial.distance import cdist
+
+from mpe3d.harness.scene.metrics import align_ransac4, align_rigid, chamfer, earth_movers, evaluate, roa
+from mpe3d.harness.scene.viewpoints import rotation
+
+
+def test_chamfer_is_zero_on_identical_clouds(rng):
+    pts = rng.normal(size=(300, 3))
+    scores = chamfer(pts, pts[rng.permutation(300)])
+    assert scores == {"cd": 0.0, "cd_mean": 0.0, "cd_x100": 0.0}
+
+
+def test_chamfer_on_a_known_offset():
+    a = np.zeros((1, 3))
+    b = np.array([[0.0, 0.0, 0.5]])
+    scores = chamfer(a, b)
+    assert scores["cd"] == pytest.approx(0.5)  # 0.25 each way, squared distances
+    assert scores["cd_x100"] == pytest.approx(100.0)
+
+
+@pytest.mark.parametrize("reflect", [False, True])
+def test_roa_unchanged_by_rigid_motion_and_reflection(rng, reflect):
+    truth = rng.normal(size=(200, 3))
+    recon = truth + 0.01 * rng.normal(size=truth.shape)
+    base = roa(recon, truth)
+    Q = rotation(0.4, -0.9, 2.2)
+    if reflect:
+        Q = Q @ np.diag([1.0, 1.0, -1.0])
+    moved = recon @ Q.T + np.array([3.0, -1.0, 0.5])
+    assert roa(moved, truth) == pytest.approx(base, rel=1e-9)
+    assert roa(truth @ Q.T, truth) < 1e-12
+    assert np.allclose(align_rigid(truth @ Q.T - 7.0, truth), truth, atol=1e-12)
+
+
+def test_emd_equals_brute_force_assignment(rng):
+    for n in (3, 7, 12):
+        a, b = rng.normal(size=(n, 3)), rng.normal(size=(n, 3))
+        M = cdist(a, b)
+        rows, cols = linear_sum_assignment(M)
+        scores = earth_movers(a, b)
+        assert scores["emd"] == pytest.approx(M[rows, cols].sum(), rel=1e-10)
+        assert scores["emd_mean"] == pytest.approx(M[rows, cols].sum() / n, rel=1e-10)
+
+
+def test_ransac4_recovers_an_affine_map(rng):
+    truth = rng.normal(size=(100, 3))
+    A = np.array([[1.2, 0.1, 0.0], [0.0, 0.8, 0.3], [0.2, 0.0, 1.1]])
+    recon = (truth - 0.5) @ np.linalg.inv(A).T
+    aligned = align_ransac4(recon, truth, rng, trials=50)
+    assert np.allclose(aligned, truth, atol=1e-8)
+
+
+def test_evaluate_reports_every_metric(rng):
+    truth = rng.normal(size=(64, 3))
+    scores, aligned = evaluate(truth, truth @ rotation(1, 2, 3).T, "rigid", 0)
+    assert set(scores) >= {"cd", "cd_mean", "emd", "emd_mean", "roa"}
+    assert all(v < 1e-10 for v in scores.values())
+    assert np.allclose(aligned, truth, atol=1e-12)

@@ -1,0 +1,172 @@
+"""The compiled kernels and the batched linear algebra behind the speed-ups
+(issue 16), each against the plain formulation it replaces."""
+import warnings
+
+import numpy as np
+import pytest
+
+from mpe3d.solvers import kernels
+from mpe3d.solvers.linalg import gram_by_group, matvec_by_group, pinv_psd
+from mpe3d.solvers.sfm.adjust import row_order
+
+
+def test_smacof_takes_scikit_learns_steps(rng):
+    """The baseline's MDS: scikit-learn's metric SMACOF, iterate for iterate."""
+    from sklearn.manifold import smacof
+
+    truth = rng.normal(size=(120, 3))
+    D = np.linalg.norm(truth[:, None] - truth[None], axis=2)
+    D = D * (1 + 0.05 * np.abs(rng.normal(size=D.shape)))
+    D = np.triu(D, 1) + np.triu(D, 1).T  # a noisy, non-Euclidean matrix: many iterations
+    start = rng.normal(size=(120, 3))
+    for max_iter in (1, 5, 300):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            want, stress, steps = smacof(D, metric=True, n_components=3, init=start, n_init=1,
+                                         max_iter=max_iter, normalized_stress=False,
+                                         return_n_iter=True)
+        got, got_stress, got_steps = kernels.smacof(D, start, max_iter=max_iter)
+        assert got_steps == steps
+        assert np.allclose(got, want, rtol=0, atol=1e-9 * np.abs(want).max())
+        assert got_stress == pytest.approx(stress, rel=1e-9)
+    assert steps > 5  # the stopping rule was reached, not the cap
+
+
+def test_smacof_refuses_another_dimension(rng):
+    with pytest.raises(ValueError, match="3D"):
+        kernels.smacof(np.ones((4, 4)), rng.normal(size=(4, 2)))
+
+
+def _gauss_newton(x, P, Y, d, root, steps):
+    """Refine's former NumPy placement of one point, for reference."""
+    for _ in range(steps):
+        diff = np.einsum("nij,j->ni", P, x) - Y
+        e = np.maximum(np.linalg.norm(diff, axis=1), 1e-12)
+        J = -np.einsum("ni,nij->nj", diff / e[:, None], P)
+        step = np.linalg.lstsq(root[:, None] * J, -root * (d - e), rcond=None)[0]
+        x = x + step
+        if np.linalg.norm(step) <= 1e-9 * (1.0 + np.linalg.norm(x)):
+            break
+    return x
+
+
+def test_multilateration_matches_numpy_gauss_newton(rng):
+    from mpe3d.solvers.sgd import random_projections
+
+    point = rng.normal(size=3)
+    P = np.repeat(random_projections(3, rng), 40, axis=0)
+    anchors = rng.normal(size=(120, 3))
+    Y = np.einsum("nij,nj->ni", P, anchors)
+    d = np.linalg.norm(np.einsum("nij,j->ni", P, point) - Y, axis=1) + 0.01 * rng.normal(size=120)
+    root = rng.uniform(0.5, 2.0, size=120)
+    start = point + 0.3 * rng.normal(size=3)
+    got = kernels.multilaterate(start, P, Y, d, root, 10)
+    assert np.allclose(got, _gauss_newton(start, P, Y, d, root, 10), atol=1e-12)
+    starts = np.array([0, 40, 80, 120])
+    misfit = np.abs(d - np.linalg.norm(np.einsum("nij,j->ni", P, got) - Y, axis=1))
+    want = [np.median(misfit[a:b]) for a, b in zip(starts[:-1], starts[1:])]
+    assert np.allclose(kernels.row_misfits(got, P, Y, d, starts), want, rtol=1e-14)
+
+
+def test_multilateration_in_one_view_falls_back_to_least_squares(rng):
+    """Anchors in one view leave the point's depth open: the normal equations
+    are singular, and the step must be gelsd's minimum-norm one, as before."""
+    from mpe3d.solvers.sgd import random_projections
+
+    P = np.repeat(random_projections(1, rng), 50, axis=0)
+    anchors = rng.normal(size=(50, 3))
+    Y = np.einsum("nij,nj->ni", P, anchors)
+    point = rng.normal(size=3)
+    d = np.linalg.norm(np.einsum("nij,j->ni", P, point) - Y, axis=1)
+    start = point + 0.2 * rng.normal(size=3)
+    root = np.ones(50)
+    got = kernels.multilaterate(start, P, Y, d, root, 10)
+    assert np.allclose(got, _gauss_newton(start, P, Y, d, root, 10), atol=1e-10)
+
+
+def test_pinv_psd_is_pinv_on_good_and_degenerate_systems(rng):
+    A = rng.normal(size=(500, 4, 3))
+    M = np.einsum("nai,naj->nij", A, A)
+    M[:100] = np.einsum("nai,naj->nij", A[:100, :2], A[:100, :2])  # rank 2: a point in one view
+    M[100:110] = 0.0  # no observation at all
+    M[110:120] *= np.array([1.0, 1.0, 1e-12])  # nearly singular along one axis
+    got, want = pinv_psd(M), np.linalg.pinv(M)
+    assert np.allclose(got, want, rtol=1e-7, atol=1e-9 * np.abs(want).max())
+    good = np.einsum("nai,naj->nij", A, A)[120:]
+    assert np.allclose(pinv_psd(good), np.linalg.pinv(good), rtol=1e-9, atol=1e-12)
+
+
+def test_grouped_products_equal_the_per_row_ones(rng):
+    group = rng.integers(0, 5, size=300)
+    group[group == 3] = 4  # a group with no rows
+    M = rng.normal(size=(5, 2, 3))
+    Y = rng.normal(size=(300, 3))
+    assert np.allclose(matvec_by_group(M, group, Y), np.einsum("tij,tj->ti", M[group], Y))
+    A, B = rng.normal(size=(300, 2, 4)), rng.normal(size=(300, 2, 3))
+    want = np.zeros((5, 4, 3))
+    np.add.at(want, group, np.einsum("tai,taj->tij", A, B))
+    assert np.allclose(gram_by_group(A, group, 5, B), want)
+    assert np.allclose(gram_by_group(Y, group, 5), [Y[group == g].T @ Y[group == g] for g in range(5)])
+
+
+def test_bundle_row_order_is_the_stable_argsort(rng):
+    point = rng.integers(0, 40, size=700)
+    rows = (3 * point[:, None] + np.arange(3)).ravel()
+    assert np.array_equal(row_order(point, 50), np.argsort(rows, kind="stable"))
+
+
+def test_the_fixed_elimination_is_the_same_in_blocks(monkeypatch):
+    """factorize's fixed setting forms X = Y(h) block by block of points (no
+    N x 3 x 4K array at a million points); the block size changes no digit
+    that matters."""
+    from mpe3d import solvers
+    from mpe3d.harness.scene.metrics import roa
+    from mpe3d.solvers import factorize
+    from tests.helpers import scene_and_observations
+
+    _, scene, obs = scene_and_observations(points=400, views=5, projections="fixed")
+    whole = solvers.solve("factorize", obs, random_state=0).points
+    monkeypatch.setattr(factorize, "_POINT_BLOCK", 64)  # seven blocks, the last one short
+    blocks = solvers.solve("factorize", obs, random_state=0).points
+    assert np.allclose(blocks, whole, atol=1e-12)
+    assert roa(blocks, scene.points) < 1e-12
+
+
+def test_stresses_of_the_same_observations_share_their_inputs():
+    """A solve and its report build several Stress objects of one set of views:
+    the distance matrices and sparse pair sets are made once."""
+    from mpe3d.solvers.stress import Stress
+    from tests.helpers import scene_and_observations
+
+    _, _, obs = scene_and_observations(points=60, observe="coordinates")
+    first, second = Stress(obs), Stress(obs, "huber", 0.1)
+    assert all(a is b for a, b in zip(first.D, second.D))
+
+
+def test_compiled_median_is_numpys(rng):
+    """Odd and even counts, ties and all-equal rows: the rejection line
+    compares misfits with it, so it must be numpy's to the bit."""
+    from mpe3d.solvers.kernels import median_in_place
+
+    for m in [*range(1, 30), 200, 201]:
+        for values in (rng.normal(size=m), rng.integers(0, 3, size=m).astype(float), np.ones(m)):
+            assert median_in_place(values.copy()) == np.median(values)
+
+
+def test_row_residuals_compiled_match_numpy(rng):
+    from mpe3d import make_config
+    from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
+    from mpe3d.solvers.sgd import random_projections
+    from mpe3d.solvers.stress import Stress
+
+    config = make_config({"shape": "chair", "points": 200, "views": 4, "visibility.mode": "exact",
+                          "visibility.k": 3, "projections": "variable"})
+    streams = seed_streams(0)
+    scene = build_scene(config, streams)
+    obs, _ = observe(scene, config, streams)
+    X = scene.points + 0.01 * rng.normal(size=scene.points.shape)
+    P = random_projections(4, rng)
+    among = [rng.random(v.size) < 0.8 for v in obs.views]
+    got = Stress(obs).row_residuals(X, P, among)
+    want = Stress(obs, kernel="numpy").row_residuals(X, P, among)
+    assert all(np.array_equal(a, b) for a, b in zip(got, want))
