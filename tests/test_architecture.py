@@ -1,0 +1,180 @@
+"""The house rules: layers, no cycles, public names across modules, one style.
+
+The layer rule itself is written once, as import-linter contracts in
+``pyproject.toml`` (docs/architecture.md explains it); these tests run it and
+check what it cannot say.
+"""
+import ast
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import REPO
+
+PACKAGE_DIRS = {"mpe3d": REPO / "src" / "mpe3d", "mpe3d.harness": REPO / "harness",
+                "mpe3d.solvers": REPO / "solvers", "mpe3d.reports": REPO / "reports",
+                "mpe3d.sweeps": REPO / "sweeps"}
+OUR_CODE = [REPO / d for d in ("src", "harness", "solvers", "reports", "sweeps", "tests",
+                               "scripts", "benchmarks", "examples")]
+
+
+@pytest.fixture(scope="module")
+def tree(tmp_path_factory) -> Path:
+    """The package as it installs (one ``mpe3d`` folder), made of links to the
+    checkout: static analysis reads it from disk, and an editable install
+    keeps ``mpe3d``'s subpackages in other folders."""
+    root = tmp_path_factory.mktemp("tree")
+    package = root / "mpe3d"
+    package.mkdir()
+    for path in PACKAGE_DIRS["mpe3d"].glob("*.py"):
+        (package / path.name).symlink_to(path)
+    for name, folder in PACKAGE_DIRS.items():
+        if name != "mpe3d":
+            (package / name.split(".")[1]).symlink_to(folder, target_is_directory=True)
+    return root
+
+
+def _modules() -> dict[str, Path]:
+    """Every module of the package, by dotted name."""
+    out = {}
+    for package, folder in PACKAGE_DIRS.items():
+        for path in folder.rglob("*.py"):
+            if "__pycache__" in path.parts or (package == "mpe3d" and path.parent != folder):
+                continue
+            parts = path.relative_to(folder).with_suffix("").parts
+            name = ".".join((package, *parts))
+            out[name.removesuffix(".__init__")] = path
+    return out
+
+
+def _lint_imports(tree: Path, config: Path) -> subprocess.CompletedProcess:
+    lint = shutil.which("lint-imports") or str(Path(sys.executable).parent / "lint-imports")
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    return subprocess.run([lint, "--config", str(config), "--no-cache"], cwd=tree, env=env,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_the_import_contracts_hold(tree):
+    result = _lint_imports(tree, REPO / "pyproject.toml")
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-2000:]
+    assert "broken" not in result.stdout.lower().split("contracts:")[-1].replace("0 broken", "")
+
+
+def test_an_upward_import_breaks_the_contracts(tree, tmp_path):
+    """The contracts can fail: a scene that imports the runner is refused."""
+    copy = tmp_path / "mpe3d"
+    shutil.copytree(tree / "mpe3d", copy, symlinks=False, ignore=shutil.ignore_patterns("__pycache__"))
+    shapes = copy / "harness" / "scene" / "shapes.py"
+    shapes.write_text(shapes.read_text() + "\nfrom mpe3d.harness import runner  # noqa\n")
+    result = _lint_imports(tmp_path, REPO / "pyproject.toml")
+    assert result.returncode != 0
+    assert "mpe3d.harness.scene.shapes -> mpe3d.harness.runner" in result.stdout
+
+
+def _imports(path: Path, name: str) -> set[str]:
+    """The ``mpe3d`` modules that module ``name`` imports, at the top or in a function."""
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found |= {alias.name for alias in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                root = ".".join(parts[:len(parts) - node.level + 1])
+                base = f"{root}.{base}" if base else root
+            found |= {base} | {f"{base}.{alias.name}" for alias in node.names}
+    return found
+
+
+def test_no_import_cycle_among_the_modules():
+    """Module by module, function-level imports included (Tarjan's strongly
+    connected components): a package importing its own modules is no cycle."""
+    modules = _modules()
+    edges = {name: sorted(m for m in _imports(path, name) & set(modules) if m != name
+                          and not name.startswith(m + "."))
+             for name, path in modules.items()}
+    index, low, stack, on_stack, cycles = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in edges[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1:
+                cycles.append(sorted(component))
+
+    sys.setrecursionlimit(max(sys.getrecursionlimit(), 10_000))
+    for name in modules:
+        if name not in index:
+            visit(name)
+    assert not cycles, cycles
+
+
+def _private_uses(path: Path, own: str | None) -> list[str]:
+    """``from mpe3d.x import _name`` and ``module._name`` where the module is
+    another ``mpe3d`` module than ``own``."""
+    tree = ast.parse(path.read_text())
+    modules, found = {}, []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("mpe3d") \
+                and node.module != own:
+            for alias in node.names:
+                if alias.name.startswith("_") and not alias.name.startswith("__"):
+                    found.append(f"{path.name}:{node.lineno} imports {node.module}.{alias.name}")
+                modules[alias.asname or alias.name] = f"{node.module}.{alias.name}"
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("mpe3d") and alias.name != own:
+                    modules[alias.asname or alias.name.split(".")[0]] = alias.name
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) \
+                and node.value.id in modules and node.attr.startswith("_") \
+                and not node.attr.startswith("__"):
+            found.append(f"{path.name}:{node.lineno} uses {modules[node.value.id]}.{node.attr}")
+    return found
+
+
+def test_no_private_name_is_used_across_modules():
+    own = {path: name for name, path in _modules().items()}
+    uses = []
+    for folder in OUR_CODE:
+        for path in folder.rglob("*.py"):
+            if "__pycache__" not in path.parts:
+                uses += _private_uses(path, own.get(path))
+    assert not uses, uses
+
+
+def test_the_harness_shows_its_rooms():
+    """At most about 8 modules at the harness's top; each subpackage says what
+    it is for and what it may import."""
+    top = [p.name for p in (REPO / "harness").glob("*.py") if p.name != "__init__.py"]
+    assert len(top) <= 8, top
+    for init in [*REPO.glob("harness/*/__init__.py"), *REPO.glob("solvers/*/__init__.py")]:
+        doc = ast.get_docstring(ast.parse(init.read_text())) or ""
+        assert "May import" in doc and len(doc.splitlines()) >= 3, init
+
+
+def test_the_code_follows_the_style():
+    ruff = shutil.which("ruff") or str(Path(sys.executable).parent / "ruff")
+    result = subprocess.run([ruff, "check", "--no-cache", "."], cwd=REPO, capture_output=True,
+                            text=True, timeout=300)
+    assert result.returncode == 0, result.stdout[-3000:]
