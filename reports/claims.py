@@ -18,7 +18,7 @@ from typing import Callable
 import numpy as np
 import pandas as pd
 
-from .load import CD
+from mpe3d.reports.load import CD
 
 HOLDS, FAILS, NOT_ENOUGH, NOT_APPLICABLE = "holds", "does not hold", "not enough runs", "n/a"
 ACCEPTABLE_CD = 0.2  # the paper's acceptability line (Section "Robustness of the Algorithm")
@@ -390,7 +390,7 @@ def claims_table(frames: dict[str, pd.DataFrame], claims=CLAIMS,
     counts as no runs. ``full_sizes`` gives, per experiment, the runs per
     group at the full scale: a verdict from fewer is marked provisional.
     """
-    from .load import varying_columns
+    from mpe3d.reports.load import varying_columns
 
     rows = []
     for claim in claims:
@@ -408,3 +408,29 @@ def claims_table(frames: dict[str, pd.DataFrame], claims=CLAIMS,
             row[f"{column}: runs"] = verdict.runs
         rows.append(row)
     return pd.DataFrame(rows)
+
+
+MARKS = {HOLDS: "✓ holds", FAILS: "✗ fails", NOT_ENOUGH: "… too few runs", NOT_APPLICABLE: "–"}
+
+
+def _mark(verdict: str) -> str:
+    base, provisional = verdict.split(",")[0], "provisional" in verdict
+    return MARKS.get(base, base) + (" (provisional)" if provisional else "")
+
+
+def claim_lines(table: pd.DataFrame) -> tuple[pd.DataFrame, list[list[tuple[str, str]]]]:
+    """:func:`claims_table` read at a glance: one line per claim (the claim, a
+    mark per method, the headline number: the first clause of the first
+    method's numbers), and what each line folds away (where, the test, every
+    method's verdict with its numbers and runs)."""
+    lines, details = [], []
+    for _, row in table.iterrows():
+        numbers = [row[f"{c}: numbers"] for c in VERDICT_COLUMNS.values() if row[f"{c}: numbers"]]
+        lines.append({"claim": row["claim"], **{c: _mark(row[c]) for c in VERDICT_COLUMNS.values()},
+                      "headline": numbers[0].split(";")[0] if numbers else ""})
+        details.append([("where", f"{row['paper']} (experiment {row['experiment']})"),
+                        ("test", row["test"])]
+                       + [(c, f"{row[c]}: {row[f'{c}: numbers'] or 'no numbers'} "
+                              f"({row[f'{c}: runs']} runs)")
+                          for c in VERDICT_COLUMNS.values() if row[c] != NOT_APPLICABLE])
+    return pd.DataFrame(lines), details

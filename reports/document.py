@@ -72,6 +72,15 @@ class Report:
         self._wrote([md, tex])
         self.blocks.append(("table", (frame, name, caption, show)))
 
+    def folded_table(self, frame: pd.DataFrame, name: str, caption: str, lines: pd.DataFrame,
+                     details: list[list[tuple[str, str]]]) -> None:
+        """``frame`` written as :meth:`table` writes it, shown as one line per row
+        (``lines``) with each row's ``details`` (label, text) folded beneath it
+        in ``index.html``: a wall of prose in narrow cells reads as a list."""
+        self.table(frame, name, caption, show=False)
+        if not frame.empty:
+            self.blocks[-1] = ("folded", (lines, name, self.blocks[-1][1][2], details))
+
     def figure(self, fig, name: str, caption: str) -> None:
         """``figures/NAME.png`` and ``figures/NAME.pdf``, and the PNG in the index."""
         import matplotlib.pyplot as plt
@@ -98,7 +107,7 @@ class Report:
         md.write_text(self._markdown())
         page.write_text(self._html())
         if any(kind == "viewer" for kind, _ in self.blocks):
-            from .viewer import write_script
+            from mpe3d.reports.viewer import write_script
 
             self.files.append(write_script(self.out))
         return md, page
@@ -115,6 +124,10 @@ class Report:
                 frame, name, caption, show = value
                 links = f"[md](tables/{name}.md) · [tex](tables/{name}.tex)"
                 parts.append(f"**{caption}** ({links})" + (f"\n\n{_markdown(frame)}" if show else ""))
+            elif kind == "folded":
+                lines, name, caption, _ = value
+                parts.append(f"**{caption}** (every test and number: [md](tables/{name}.md) · "
+                             f"[tex](tables/{name}.tex))\n\n{_markdown(lines)}")
             elif kind == "viewer":
                 parts.append(f"*{value[2].split(' Drag')[0]}* (turn it with the mouse in index.html)")
             else:
@@ -139,6 +152,8 @@ class Report:
                                       border=0) if show else ""
                 body.append(f"<figure class='table'><figcaption>{html.escape(caption)} ({links})"
                             f"</figcaption>{table}</figure>")
+            elif kind == "folded":
+                body.append(_folded_html(*value))
             elif kind == "viewer":
                 clouds, name, caption = value
                 ident = "cloud-" + "".join(c if c.isalnum() else "-" for c in name)
@@ -158,9 +173,28 @@ class Report:
                 f"<body>{''.join(body)}{script}</body></html>\n")
 
 
+def _folded_html(lines: pd.DataFrame, name: str, caption: str, details) -> str:
+    """One ``<details>`` per row: its line as the summary, its details beneath."""
+    links = f'<a href="tables/{name}.md">md</a> · <a href="tables/{name}.tex">tex</a>'
+    head = "".join(f"<span>{html.escape(str(c))}</span>" for c in lines.columns)
+    rows = []
+    for (_, line), more in zip(lines.iterrows(), details):
+        cells = "".join(f"<span>{html.escape(str(v))}</span>" for v in line)
+        folded = "".join(f"<dt>{html.escape(label)}</dt><dd>{html.escape(text)}</dd>" for label, text in more)
+        rows.append(f"<details><summary>{cells}</summary><dl>{folded}</dl></details>")
+    return (f"<figure class='folded'><figcaption>{html.escape(caption)} ({links}); "
+            f"click a line for its test and numbers</figcaption><div class='folded-head'>{head}</div>"
+            f"{''.join(rows)}</figure>")
+
+
 _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;line-height:1.4}"
         "table{border-collapse:collapse;font-size:0.85em;margin:0.5em 0}"
         "th,td{padding:2px 8px;border-bottom:1px solid #ddd;text-align:left;vertical-align:top}"
         "img{max-width:100%}figure{margin:1em 0}figcaption{font-size:0.9em;color:#333}"
         "figure.viewer{display:inline-block;width:430px;vertical-align:top;margin:0.5em 1em 0.5em 0}"
-        "canvas.mpe3d-cloud{border:1px solid #ddd;cursor:grab;touch-action:none}")
+        "canvas.mpe3d-cloud{border:1px solid #ddd;cursor:grab;touch-action:none}"
+        ".folded summary,.folded-head{display:grid;grid-template-columns:minmax(0,3fr) 7em 7em minmax(0,2fr);"
+        "gap:0 1em;padding:3px 0;border-bottom:1px solid #ddd;font-size:0.9em}"
+        ".folded summary{cursor:pointer;list-style:none}.folded summary::-webkit-details-marker{display:none}"
+        ".folded-head{font-weight:bold}.folded dl{margin:0.3em 0 0.8em 1.5em;font-size:0.85em}"
+        ".folded dt{font-weight:bold;margin-top:0.3em}.folded dd{margin:0 0 0 1em}")

@@ -14,13 +14,12 @@ from typing import Callable
 
 import pandas as pd
 
-from mpe3d.harness.identity import code_identity
-
-from . import figures, tables
-from .claims import claims_table
-from .document import Report
-from .viewer import add_viewers
-from .load import CD, EMD, METRIC_LABELS, ROA, finished, published, varying_columns
+from mpe3d.harness.tracking.identity import code_identity
+from mpe3d.reports import figures, tables
+from mpe3d.reports.claims import claim_lines, claims_table
+from mpe3d.reports.document import Report
+from mpe3d.reports.load import CD, EMD, METRIC_LABELS, ROA, finished, published, varying_columns
+from mpe3d.reports.viewer import add_viewers
 
 METRICS = [CD, EMD, ROA]
 
@@ -304,7 +303,8 @@ def write(out: Path, sections: list[Section], title: str, facts: list[str] | Non
         mixed = [s.name for s in sections if code_note(finished(s.frame), s.code)[1]]
         report.note = f"Some runs behind them come from other code versions ({', '.join(mixed)})." \
             if mixed else ""
-        report.table(checked, "claims", "The paper's claims and their verdicts.")
+        report.folded_table(checked, "claims", "The paper's claims and their verdicts.",
+                            *claim_lines(checked))
         report.note = ""
     for section in sections:
         render_section(report, section)
