@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from mpe3d.harness.tracking.identity import imported_modules
 from tests.helpers import REPO
 
 PACKAGE_DIRS = {"mpe3d": REPO / "src" / "mpe3d", "mpe3d.harness": REPO / "harness",
@@ -75,28 +76,11 @@ def test_an_upward_import_breaks_the_contracts(tree, tmp_path):
     assert "mpe3d.harness.scene.shapes -> mpe3d.harness.runner" in result.stdout
 
 
-def _imports(path: Path, name: str) -> set[str]:
-    """The ``mpe3d`` modules that module ``name`` imports, at the top or in a function."""
-    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
-    found = set()
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.Import):
-            found |= {alias.name for alias in node.names}
-        elif isinstance(node, ast.ImportFrom):
-            base = node.module or ""
-            if node.level:
-                parts = package.split(".")
-                root = ".".join(parts[:len(parts) - node.level + 1])
-                base = f"{root}.{base}" if base else root
-            found |= {base} | {f"{base}.{alias.name}" for alias in node.names}
-    return found
-
-
 def test_no_import_cycle_among_the_modules():
     """Module by module, function-level imports included (Tarjan's strongly
     connected components): a package importing its own modules is no cycle."""
     modules = _modules()
-    edges = {name: sorted(m for m in _imports(path, name) & set(modules) if m != name
+    edges = {name: sorted(m for m in imported_modules(name, path) & set(modules) if m != name
                           and not name.startswith(m + "."))
              for name, path in modules.items()}
     index, low, stack, on_stack, cycles = {}, {}, [], set(), []

@@ -27,7 +27,7 @@ from mpe3d import solvers
 from mpe3d.errors import MpeError
 from mpe3d.harness.experiment import colmap_sfm
 from mpe3d.harness.experiment.config import RunConfig
-from mpe3d.harness.experiment.result import RunResult
+from mpe3d.harness.experiment.result import RunResult, short_number
 from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.scene.visibility import SELF_HIT_TOLERANCE
@@ -215,15 +215,11 @@ def describe(summary: dict[str, Any]) -> list[str]:
              f"against N={cfg['points']} surface samples, seed {cfg['seed']}",
              summary["termination"]]
     if "cd_x100" in summary:
-        lines.append(f"cd_x100={_number(summary['cd_x100'])}  emd_x100={_number(summary['emd_x100'])}  "
+        lines.append(f"cd_x100={short_number(summary['cd_x100'])}  emd_x100={short_number(summary['emd_x100'])}  "
                      f"reprojection {summary['reprojection_px']:.3f} px")
-    tracks = [f"{k}={_number(summary[k])}" for k in summary if k.startswith("tracks_")
+    tracks = [f"{k}={short_number(summary[k])}" for k in summary if k.startswith("tracks_")
               and k.endswith(("ge2", "ge3", "triangulated", "cd_x100"))]
     lines.append("COLMAP's tracks: " + "  ".join(tracks))
     lines.append(f"render {summary['render_s']:.1f} s, COLMAP {summary['runtime_s']:.1f} s, "
                  f"total {summary['wall_s']:.1f} s")
     return lines
-
-
-def _number(value) -> str:
-    return f"{value:.4g}" if isinstance(value, float) else str(value)

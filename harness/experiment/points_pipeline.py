@@ -6,7 +6,7 @@ from typing import Any
 
 from mpe3d import solvers
 from mpe3d.harness.experiment.config import RunConfig
-from mpe3d.harness.experiment.result import RunResult
+from mpe3d.harness.experiment.result import RunResult, short_number
 from mpe3d.harness.scene import metrics
 from mpe3d.harness.scene.observe import build_scene, observe
 from mpe3d.solvers.degenerate import collect_notes
@@ -45,11 +45,7 @@ def describe(summary: dict[str, Any]) -> list[str]:
             f"visibility {cfg['visibility']['mode']}, projections {cfg['projections']}, "
             f"solver {cfg['solver']['name']} (init {cfg['init']}), seed {cfg['seed']}",
             f"visible per view: {summary['visible_per_view']}",
-            "  ".join(f"{k}={_number(summary[k])}" for k in ("cd", "cd_mean", "emd", "emd_mean", "roa")),
-            f"stress={_number(summary['stress'])}  iterations={summary['iterations']} "
+            "  ".join(f"{k}={short_number(summary[k])}" for k in ("cd", "cd_mean", "emd", "emd_mean", "roa")),
+            f"stress={short_number(summary['stress'])}  iterations={summary['iterations']} "
             f"({summary['termination']})  solver {summary['runtime_s']:.3f} s, "
             f"total {summary['wall_s']:.3f} s"]
-
-
-def _number(value) -> str:
-    return f"{value:.4g}" if isinstance(value, float) else str(value)

@@ -40,6 +40,11 @@ class RunResult:
         return out
 
 
+def short_number(value) -> str:
+    """A metric as ``mpe3d run`` prints it: 4 significant digits for a float."""
+    return f"{value:.4g}" if isinstance(value, float) else str(value)
+
+
 class Pipeline(Protocol):
     """A way from a run's config to its scores, chosen by the ``pipeline`` key.
 

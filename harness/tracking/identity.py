@@ -75,7 +75,7 @@ def module_file(name: str) -> Path | None:
     return Path(spec.origin)
 
 
-def _imported(name: str, path: Path) -> set[str]:
+def imported_modules(name: str, path: Path) -> set[str]:
     """The ``mpe3d`` modules that module ``name`` imports anywhere in its code
     (a name imported from a package counts when it is a module itself)."""
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
@@ -116,7 +116,7 @@ def fingerprinted_modules() -> frozenset[str]:
         if name in seen:
             continue
         seen.add(name)
-        todo.extend(_imported(name, module_file(name)) - seen)
+        todo.extend(imported_modules(name, module_file(name)) - seen)
     return frozenset(_with_packages(seen))
 
 

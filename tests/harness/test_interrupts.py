@@ -18,6 +18,7 @@ def check(outcome) -> None:
     assert (outcome.lost, outcome.computed_twice, outcome.missing) == (0, 0, 0), outcome
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_ctrl_c_mid_run_stops_cleanly_and_the_rerun_completes(tmp_path):
     check(trial(tmp_path, "running", random.Random(0), how="group-sigint", repeats=24))
     assert not (tmp_path / "mpe3d-journal").exists()  # emptied and tidied away

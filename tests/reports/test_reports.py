@@ -34,6 +34,7 @@ def tiny_report(tmp_path_factory):
     return folder, uri, first, second
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_report_folder_holds_every_table_and_figure(tiny_report):
     folder, _, first, _ = tiny_report
     out = folder / "report"
@@ -65,6 +66,7 @@ def test_report_folder_holds_every_table_and_figure(tiny_report):
     assert {"summary/figures/views_metrics.png", "summary/figures/views_runtime.png"} <= logged
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_tables_hold_the_runs_numbers(tiny_report):
     folder, uri, _, _ = tiny_report
     runs = Tracker(uri, create=False).runs_frame("paper-views")
@@ -79,6 +81,7 @@ def test_tables_hold_the_runs_numbers(tiny_report):
     assert f"{chair_cd.value.iloc[0]:.3g}" in allmetrics and "published, ShapeNet" in allmetrics
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_rerun_reuses_every_run(tiny_report):
     folder, _, _, second = tiny_report
     index = (folder / "again" / "index.md").read_text()
@@ -87,6 +90,7 @@ def test_rerun_reuses_every_run(tiny_report):
         sorted(p.name for p in (folder / "report" / "figures").iterdir())
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_report_commands_and_their_errors(tiny_report, capsys):
     folder, uri, _, _ = tiny_report
     one = run_cli("report", "--experiment", "paper-angle-band", "--out", "one",
@@ -121,6 +125,7 @@ def _chromium():
 
 @pytest.mark.skipif(not _chromium() or not shutil.which("chromedriver"),
                     reason="needs Debian's chromium and chromium-driver (.ci/run installs them)")
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_index_html_loads_with_all_images_in_a_real_browser(tiny_report):
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service

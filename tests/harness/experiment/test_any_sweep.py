@@ -71,6 +71,7 @@ def test_overrides_go_anywhere_on_sweep_and_reproduce_paper(tmp_path, capsys):
     assert not (tmp_path / "never.db").exists()
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_a_mixed_solver_report_has_a_row_per_setting_and_solver_and_its_figures(mixed):
     folder, _, _, _, report = mixed
     assert report.returncode == 0, report.stderr
@@ -90,6 +91,7 @@ def test_a_mixed_solver_report_has_a_row_per_setting_and_solver_and_its_figures(
     assert "cdn" not in page.lower() and "http" not in (folder / "rep" / "viewer.js").read_text()
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_mlflow_shows_pictures_and_names_runs_by_what_varies(mixed):
     _, _, uri, _, _ = mixed
     client = MlflowClient(uri)
@@ -108,6 +110,7 @@ def test_mlflow_shows_pictures_and_names_runs_by_what_varies(mixed):
     assert {"summary/index.html", "summary/tables", "summary/figures"} <= summary
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_a_report_without_rows_fails_and_writes_nothing(mixed, tmp_path, capsys):
     folder, path, uri, _, _ = mixed
     # The same sweep at other sizes was never run: nothing to report.

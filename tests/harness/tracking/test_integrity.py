@@ -130,6 +130,7 @@ def install(source: Path, site: Path) -> dict:
     return {"PYTHONPATH": str(site)}
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_a_code_change_is_detected_and_recomputed(tmp_path):
     path = tmp_path / "two.yaml"
     path.write_text("name: two\nbase: {shape: torus, points: 48, solver: baseline}\n"
@@ -140,18 +141,18 @@ def test_a_code_change_is_detected_and_recomputed(tmp_path):
     source, site = copy_checkout(tmp_path / "src"), tmp_path / "site"
     command = [sys.executable, "-m", "mpe3d.harness.cli", "sweep", str(path), "--jobs", "1",
                "--tracking-uri", uri, "--no-artifacts"]
+    env = {**os.environ, **install(source, site)}  # once: the edits below go to the installed copy
 
-    # Comments, docstrings and reports are not code that makes numbers (an installed copy).
-    baseline = source / "solvers" / "baseline.py"
+    # Comments, docstrings and reports are not code that makes numbers.
+    baseline = site / "mpe3d" / "solvers" / "baseline.py"
     baseline.write_text(baseline.read_text().replace('"""', '"""Edited docs. ', 1) + "\n# a note\n")
-    (source / "reports" / "tables.py").write_text((source / "reports" / "tables.py").read_text() + "\nX = 1\n")
-    env = {**os.environ, **install(source, site)}
+    tables = site / "mpe3d" / "reports" / "tables.py"
+    tables.write_text(tables.read_text() + "\nX = 1\n")
     same = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert same.returncode == 0 and "nothing to run" in same.stdout, same.stdout + same.stderr
 
     # A solver that computes differently is another code: its runs are recomputed.
     baseline.write_text(baseline.read_text() + "\nEDITED_CONSTANT = 2.0\n")
-    env = {**os.environ, **install(source, site)}
     edited = subprocess.run(command, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert edited.returncode == 0, edited.stderr
     assert "2 finished" in edited.stdout and "2 of them replaced runs computed by other code" in edited.stdout
@@ -282,6 +283,7 @@ def logged(uri, experiment, status="FINISHED"):
     return sum(r.info.status == status for r in children(uri, experiment)[0])
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_sigkill_leaves_no_running_run_after_the_next_invocation(tmp_path):
     path = tmp_path / "k.yaml"
     path.write_text(SLOW.format(name="killed", repeats=4))
@@ -304,6 +306,7 @@ def test_sigkill_leaves_no_running_run_after_the_next_invocation(tmp_path):
     assert killed and all("died before the run ended" in r.data.tags["mpe3d.error"] for r in killed)
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_two_sweeps_started_together_compute_each_config_once(tmp_path):
     path = tmp_path / "c.yaml"
     path.write_text("name: together\nbase: {shape: torus, points: 48, solver: baseline}\n"
@@ -322,6 +325,7 @@ def test_two_sweeps_started_together_compute_each_config_once(tmp_path):
     assert sum(computed) == len(configs), outputs
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_a_real_server_and_an_outage_that_loses_nothing(tmp_path, capsys, monkeypatch):
     """A sweep against a real ``mlflow server`` that hangs mid-sweep (SIGSTOP:
     requests time out, the hardest case) stops within 30 s (exit 3, one line),
@@ -397,6 +401,7 @@ repeats: 2
 """
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_jobs_1_jobs_2_and_dask_are_bit_identical(tmp_path):
     path = tmp_path / "same.yaml"
     path.write_text(DETERMINISM)

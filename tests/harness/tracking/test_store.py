@@ -148,6 +148,7 @@ def test_runs_table_prints_numbers_from_the_store(tracked, capsys, monkeypatch):
     assert piped.stdout.split()[0] == "status" and "Traceback" not in piped.stderr
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_a_raising_run_is_failed_and_the_others_finish(tmp_path, capsys):
     (tmp_path / "broken.ply").write_bytes(b"not a mesh")
     path = tmp_path / "fail.yaml"
@@ -189,6 +190,7 @@ def test_force_reruns_everything(tmp_path, capsys):
     assert len(pd.read_csv(io.StringIO(latest))) == 2
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
     path = tmp_path / "two.yaml"
     path.write_text("name: two\nbase: {shape: torus, points: 64, solver: baseline}\n")
@@ -236,6 +238,7 @@ def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
     assert code == 2 and "open it in a browser" in err
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_a_killed_sweep_keeps_its_runs_and_resumes(tmp_path):
     path = tmp_path / "slow.yaml"
     path.write_text("name: slow\nbase: {shape: torus, points: 400, views: 4,\n"
@@ -269,6 +272,7 @@ def test_a_killed_sweep_keeps_its_runs_and_resumes(tmp_path):
     assert len({r.data.tags["mpe3d.config_hash"] for r in kids if r.info.status == "FINISHED"}) == 4
 
 
+@pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_sweep_on_an_existing_dask_scheduler(tmp_path):
     import logging
 

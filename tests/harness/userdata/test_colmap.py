@@ -9,6 +9,7 @@ from mpe3d.harness.experiment import colmap_sfm
 from mpe3d.harness.experiment.colmap_pipeline import seen_in_photos
 from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.userdata import colmap_model
+from mpe3d.harness.userdata.reconstruct import ViewCamera
 from mpe3d.reports.claims import FAILS, HOLDS, colmap_fails_below
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -64,9 +65,8 @@ def _synthetic_model(folder, rng, n=300, views=8):
     seen = [rng.random(n) < 0.8 for _ in range(views)]
     observed = [{"name": f"img{k}.png", "ids": np.flatnonzero(keep) + 1, "xy": uv[k][keep]}
                 for k, keep in enumerate(seen)]
-    poses = [{"focal_px": cameras.focal, "rotation": cameras.rotations[k].tolist(),
-              "translation": cameras.translations[k].tolist(), "P": cameras.matrices()[k].tolist()}
-             for k in range(views)]
+    poses = [ViewCamera(f"img{k}.png", cameras.matrices()[k], cameras.rotations[k], cameras.focal,
+                        cameras.translations[k]) for k in range(views)]
     colmap_model.write_model(folder, X, np.arange(1, n + 1), observed, poses, cameras.principal_point)
     return X
 
