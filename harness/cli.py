@@ -404,7 +404,7 @@ def cmd_reproduce(args) -> int:
 
 def cmd_reconstruct(args) -> int:
     from mpe3d.harness.userdata.formats import check_ids_fit, check_output, write_result
-    from mpe3d.harness.userdata.reconstruct import prepare, solve
+    from mpe3d.harness.userdata.reconstruct import prepare, solve_problem
 
     if args.seed < 0:
         raise MpeError(f"--seed: expected an integer >= 0, got {args.seed}")
@@ -419,7 +419,7 @@ def cmd_reconstruct(args) -> int:
                       outlier_threshold=args.outlier_threshold,
                       principal_point=args.principal_point)
     check_ids_fit(out, problem.ids)
-    result = solve(problem)
+    result = solve_problem(problem)
     extra = {"input": str(args.input), "output": str(model or out)}
     if model:
         from mpe3d.harness.userdata.colmap_model import write_model_folder

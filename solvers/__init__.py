@@ -1,4 +1,9 @@
-"""Solvers for the 3DMPE stress, behind one interface (see :mod:`mpe3d.solvers.base`)."""
+"""Solvers for the 3DMPE stress, behind one interface (see :mod:`mpe3d.solvers.base`).
+
+The stress side (base, stress, kernels, linalg, starts, the solvers) imports
+nothing above it; :mod:`mpe3d.solvers.sfm`, the keypoint stack, sits on top
+of it. Neither imports the harness or the reports.
+"""
 
 from mpe3d.solvers import baseline, factorize, refine, sgd  # noqa: F401  (registration)
 from mpe3d.solvers.base import (

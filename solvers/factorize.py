@@ -21,6 +21,8 @@ point; no N x N matrix is formed.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.optimize import least_squares
 
@@ -214,7 +216,17 @@ def _affine_start(view, point, z, N, K):
         placed |= grow
 
 
-def affine_als(view, point, z, N: int, K: int, max_iter: int, tol: float):
+class AffineFit(NamedTuple):
+    """Affine structure and motion: points, each view's L_k (3x2), the RMS of the
+    fit and the sweeps it took."""
+
+    X: np.ndarray
+    L: np.ndarray
+    rms: float
+    sweeps: int
+
+
+def affine_als(view, point, z, N: int, K: int, max_iter: int, tol: float) -> AffineFit:
     """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares,
     for the observations t = (view[t], point[t], z[t]) of N points in K views."""
     X = _affine_start(view, point, z, N, K)
@@ -230,7 +242,7 @@ def affine_als(view, point, z, N: int, K: int, max_iter: int, tol: float):
         if previous - rms <= tol * previous or rms <= 1e-14 * _scale(z):
             break
         previous = rms
-    return X, L, rms, iteration
+    return AffineFit(X, L, rms, iteration)
 
 
 def _scale(z: np.ndarray) -> float:

@@ -92,15 +92,15 @@ def _fed_to(method: str, views: list[dict], principal_point):
     """mpe3d's cloud of COLMAP's tracks (ids = track index) by ``method``: the
     solve of :func:`~mpe3d.harness.userdata.reconstruct.reconstruct` on views
     made here, without the checks that a user's files need."""
-    from mpe3d.harness.userdata.reconstruct import Problem, observations_from, solve
+    from mpe3d.harness.userdata.reconstruct import Problem, observations_from, solve_problem
 
     observations, ids = observations_from(views)
     names = [str(view.get("name", k)) for k, view in enumerate(views)]
     if method == "bundle":
-        return solve(Problem(observations, ids, "refine", "l2", 0, objective="reprojection",
+        return solve_problem(Problem(observations, ids, "refine", "l2", 0, objective="reprojection",
                              camera="perspective", principal_point=tuple(principal_point),
                              view_names=names))
-    return solve(Problem(observations, ids, method, "l2", 0, objective="stress", view_names=names))
+    return solve_problem(Problem(observations, ids, method, "l2", 0, objective="stress", view_names=names))
 
 
 def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[dict, list[str]]:

@@ -309,7 +309,7 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
                    float(outlier_threshold), principal_point, names, notes)
 
 
-def solve(problem: Problem) -> Result:
+def solve_problem(problem: Problem) -> Result:
     """Solve a prepared problem and report on the result."""
     start = time.perf_counter()
     with collect_notes(labels=problem.ids) as notes:  # notes about the input go in the report
@@ -382,7 +382,7 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
         The pinhole camera's principal point in pixels (the image centre);
         None takes the centre of the keypoints' bounding box.
     """
-    return solve(prepare(views, projections, solver, loss, random_state, objective, camera,
+    return solve_problem(prepare(views, projections, solver, loss, random_state, objective, camera,
                          missing, outlier_threshold, principal_point))
 
 

@@ -41,7 +41,7 @@ under the final cameras, and what the fit explains is taken back
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -111,7 +111,18 @@ class BundleResult:
 
 # -- the start -------------------------------------------------------------------
 
-def weak_perspective_start(tracks: Tracks, sweeps: int = 20, tol: float = 1e-10):
+class WeakStart(NamedTuple):
+    """The weak-perspective start: points, orthonormal rows, scales, translations,
+    and the RMS of the affine fit under it."""
+
+    X: np.ndarray
+    P: np.ndarray  # (K, 2, 3)
+    scale: np.ndarray  # (K,)
+    t: np.ndarray  # (K, 2)
+    affine_rms: float
+
+
+def weak_perspective_start(tracks: Tracks, sweeps: int = 20, tol: float = 1e-10) -> WeakStart:
     """X, orthonormal rows P (K, 2, 3), scales s and translations t from the
     affine factorisation (``sweeps`` alternating sweeps after it is grown) and
     the positive-definite upgrade, and the RMS of the affine fit."""
@@ -128,7 +139,7 @@ def weak_perspective_start(tracks: Tracks, sweeps: int = 20, tol: float = 1e-10)
     X = X - X.mean(axis=0)
     P = project_rows(rows)
     t = _translations_for(X, P, scale, tracks)
-    return X, P, scale, t, rms(affine)
+    return WeakStart(X, P, scale, t, rms(affine))
 
 
 @one_blas_thread
@@ -171,9 +182,9 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     used = _informative(tracks, ~flagged)
     grown = incremental.incremental_start(tracks.subset(used), _finite(outlier_threshold))
     if grown is not None and np.isfinite(outlier_threshold):  # its left-outs are suspects too
-        flagged[np.flatnonzero(used)[grown[2]]] = True
+        flagged[np.flatnonzero(used)[grown.left_out]] = True
         used = _informative(tracks, ~flagged)
-    fit, affine_rms = _scaled(tracks.subset(used), lm_options, None if grown is None else grown[:2])
+    fit, affine_rms = _scaled(tracks.subset(used), lm_options, None if grown is None else grown[:2])  # (X, cameras)
     # The models are compared on the same observations, before any is dropped:
     # a weak-perspective misfit of perspective data is no wrong match.
     fits = {"scaled": fit}

@@ -28,12 +28,14 @@ final fit explains).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from mpe3d.solvers.factorize import metric_upgrade_pd
 from mpe3d.solvers.linalg import fit_views, rows_of
 from mpe3d.solvers.sfm.adjust import adjust
-from mpe3d.solvers.sfm.cameras import affine_cameras
+from mpe3d.solvers.sfm.cameras import Cameras, affine_cameras
 from mpe3d.solvers.sfm.epipolar import off_affine_subspace
 from mpe3d.solvers.sfm.tracks import Tracks, image_size, residual_lengths, robust_sigma
 from mpe3d.solvers.sfm.triangulation import least_squares_points, robust_points
@@ -51,7 +53,15 @@ CAUCHY_SIGMAS = 3.0  # the Cauchy loss's scale, in robust sigmas
 FLOOR = 0.05
 
 
-def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6):
+class Grown(NamedTuple):
+    """The incremental start: points, scaled cameras, and the observations left out."""
+
+    X: np.ndarray
+    cameras: Cameras
+    left_out: np.ndarray  # (T,) bool
+
+
+def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6) -> Grown | None:
     """(X, scaled cameras, left_out) grown from a seed of three views, or None
     when there are fewer, no three share 4 points or some view is never reached.
 
@@ -96,7 +106,7 @@ def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6):
     # the cloud in pixels at the views' mean scale, as the factorisation's start
     # gives it: weak perspective leaves its size free, an orthographic camera not
     norm = float(np.exp(np.mean(np.log(s))))
-    return X * norm, affine_cameras("scaled", P, s / norm, t), left_out
+    return Grown(X * norm, affine_cameras("scaled", P, s / norm, t), left_out)
 
 
 def _left_out(tracks, rows, X, cameras, tau):
