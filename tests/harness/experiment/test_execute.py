@@ -93,3 +93,13 @@ def test_lazy_imports_happen_before_the_clock(monkeypatch):
 def test_a_solvers_runtime_is_its_solve(solver):
     result = run(make_config({**NOISY, "solver.name": solver}))
     assert 0 < result.metrics["runtime_s"] <= result.wall_s
+
+
+def test_every_pipeline_name_has_a_pipeline():
+    """The config's names and the registry agree, and each pipeline keeps the protocol."""
+    from mpe3d.harness.experiment.config import KEYS, PIPELINE_NAMES
+    from mpe3d.harness.experiment.execute import PIPELINES
+
+    assert tuple(PIPELINES) == PIPELINE_NAMES == KEYS["pipeline"].choices
+    for name, pipeline in PIPELINES.items():
+        assert all(callable(getattr(pipeline, f, None)) for f in ("run", "title", "describe")), name
