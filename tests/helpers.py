@@ -13,6 +13,10 @@ from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
+# the repository's folders, by the package each installs as (pyproject.toml's package-dir)
+PACKAGE_DIRS = {"mpe3d": REPO / "src" / "mpe3d", "mpe3d.harness": REPO / "harness",
+                "mpe3d.solvers": REPO / "solvers", "mpe3d.reports": REPO / "reports",
+                "mpe3d.sweeps": REPO / "sweeps"}
 
 
 def scene_and_observations(**overrides):

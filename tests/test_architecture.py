@@ -14,11 +14,8 @@ from pathlib import Path
 import pytest
 
 from mpe3d.harness.tracking.identity import imported_modules
-from tests.helpers import REPO
+from tests.helpers import PACKAGE_DIRS, REPO
 
-PACKAGE_DIRS = {"mpe3d": REPO / "src" / "mpe3d", "mpe3d.harness": REPO / "harness",
-                "mpe3d.solvers": REPO / "solvers", "mpe3d.reports": REPO / "reports",
-                "mpe3d.sweeps": REPO / "sweeps"}
 OUR_CODE = [REPO / d for d in ("src", "harness", "solvers", "reports", "sweeps", "tests",
                                "scripts", "benchmarks", "examples")]
 

@@ -11,7 +11,7 @@ import pytest
 
 import mpe3d
 from mpe3d import solvers
-from tests.helpers import REPO
+from tests.helpers import PACKAGE_DIRS, REPO
 
 PUBLIC = {"reconstruct", "write_cloud", "solve", "View", "Observations", "run", "make_config",
           "load_sweep", "Tracker"}
@@ -52,6 +52,14 @@ def test_the_wheel_installs_mpe3d_and_nothing_else(tmp_path):
                  "mpe3d/reports/data/paper_tables.csv", "mpe3d/reports/assets/viewer.js"):
         assert data in names, data
     assert not any(name.startswith("mpe3d/tests") for name in names)
+    # Only today's modules: setuptools never empties an in-tree build/ folder, so a
+    # module moved since the last build would ship twice (and break the layer rule).
+    sources = {f"mpe3d/{p.relative_to(folder).as_posix()}" if name == "mpe3d"
+               else f"mpe3d/{name.split('.')[1]}/{p.relative_to(folder).as_posix()}"
+               for name, folder in PACKAGE_DIRS.items() for p in folder.rglob("*.py")
+               if "__pycache__" not in p.parts}
+    ghosts = sorted(n for n in names if n.endswith(".py") and n not in sources)
+    assert not ghosts, f"stale modules in the wheel (remove build/): {ghosts}"
 
     # A fresh venv: what installing the wheel adds to its site-packages.
     venv = tmp_path / "venv"
