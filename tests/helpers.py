@@ -35,6 +35,16 @@ def mpe3d_command() -> list[str]:
     return [str(script)] if script.exists() else [sys.executable, "-m", "mpe3d.harness.cli"]
 
 
+def new_store(uri: str) -> None:
+    """Create a SQLite store before a sweep in another process uses it. A test that
+    polls a store the sweep is still creating runs MLflow's migrations twice at once
+    (``table _alembic_tmp_experiments already exists``); the sweep takes a lock for
+    that, a bare client does not. ``Tracker`` takes the same lock."""
+    from mpe3d.harness.tracking.store import Tracker
+
+    Tracker(uri)
+
+
 def run_cli(*args, cwd=None, env=None):
     """Run ``mpe3d`` in a subprocess and capture what a user would see."""
     inherited = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}

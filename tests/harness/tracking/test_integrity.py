@@ -25,7 +25,7 @@ from mpe3d.harness.tracking.identity import code_identity, source_fingerprint
 from mpe3d.harness.tracking.journal import Journal
 from mpe3d.harness.tracking.ownership import Owner
 from mpe3d.harness.tracking.store import CODE_TAG, HASH_TAG, PARENT_TAG, Tracker
-from tests.helpers import REPO, free_port, mpe3d_command, run_cli, stop, wait_for
+from tests.helpers import REPO, free_port, mpe3d_command, new_store, run_cli, stop, wait_for
 
 
 def children(uri, experiment):
@@ -288,6 +288,7 @@ def test_sigkill_leaves_no_running_run_after_the_next_invocation(tmp_path):
     path = tmp_path / "k.yaml"
     path.write_text(SLOW.format(name="killed", repeats=4))
     uri = f"sqlite:///{tmp_path}/t.db"
+    new_store(uri)  # polled below while the sweep runs
     sweep = subprocess.Popen([*mpe3d_command(), "sweep", str(path), "--jobs", "2", "--tracking-uri",
                               uri, "--no-artifacts", "--quiet"], cwd=tmp_path)
     poll(lambda: sweep.poll() is None and logged(uri, "killed") >= 1)

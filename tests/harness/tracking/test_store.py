@@ -244,8 +244,9 @@ def test_a_killed_sweep_keeps_its_runs_and_resumes(tmp_path):
     path.write_text("name: slow\nbase: {shape: torus, points: 400, views: 4,\n"
                     "       solver: {name: sgd, max_iter: 300, tol: 1e-15}}\nrepeats: 4\n")
     uri = f"sqlite:///{tmp_path}/t.db"
-    MlflowClient(uri).search_experiments()  # create the store now: no reads during its migration
-    from tests.helpers import mpe3d_command
+    from tests.helpers import mpe3d_command, new_store
+
+    new_store(uri)  # polled below while the sweep runs
     sweep = subprocess.Popen([*mpe3d_command(), "sweep", str(path), "--jobs", "1",
                               "--tracking-uri", uri, "--no-artifacts"],
                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
