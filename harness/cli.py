@@ -68,23 +68,52 @@ def cmd_shapes(args) -> int:
               f"{entry['source_name']} by {entry['creator']} ({entry['faces']} faces, {entry['license']})")
     for name in PROCEDURAL:
         print(f"{name:<9} procedural")
+    from mpe3d import plugins
+    from mpe3d.harness.scene.shapes import DATASETS
+
+    plugins.load_entry_points()
+    for dataset in sorted(DATASETS.values(), key=lambda d: d.name):
+        items = ", ".join(f"{dataset.name}:{item}" for item in dataset.items) or f"{dataset.name}:<item>"
+        print(f"{dataset.name:<9} {dataset.summary or 'a dataset'}: {items}  (from {dataset.origin})")
+    for line in plugins.failures():
+        print(f"not loaded: {line}")
     return 0
 
 
 def cmd_solvers(args) -> int:
-    from mpe3d import solvers
+    from mpe3d import plugins, solvers
 
-    for whose, paper in (("the paper's", True), ("our", False)):
-        print(f"{whose} solvers:")
-        for name, spec in sorted(solvers.SOLVERS.items()):
-            if spec.paper != paper:
-                continue
-            print(f"  {name:<9} {spec.summary}")
+    plugins.load_entry_points()
+    specs = sorted(solvers.SOLVERS.values(), key=lambda s: s.name)
+    groups = [("the paper's solvers", [s for s in specs if s.origin is None and s.paper]),
+              ("our solvers", [s for s in specs if s.origin is None and not s.paper])]
+    for origin in dict.fromkeys(s.origin for s in specs if s.origin is not None):
+        groups.append((f"from {origin}", [s for s in specs if s.origin == origin]))
+    for title, members in groups:
+        print(f"{title}:")
+        for spec in members:
+            notes = [*(["exact"] if spec.exact else []),
+                     *([f"{' and '.join(spec.settings)} only"] if len(spec.settings) < 2 else [])]
+            print(f"  {spec.name:<9} {spec.summary}" + (f" [{', '.join(notes)}]" if notes else ""))
             for option, default in spec.options().items():
                 print(f"    solver.{option}={default}  ({spec.constraints[option]})")
             if spec.uses_init:
                 print("    init=smart|random  (the starting point)")
+    for line in plugins.failures():
+        print(f"not loaded: {line}")
     return 0
+
+
+def cmd_check_solver(args) -> int:
+    from mpe3d.harness.experiment.contract import run_checks
+
+    checks = run_checks(args.name, args.seed)
+    for check in checks:
+        print(check.line())
+    failed = sum(not c.passed for c in checks)
+    print(f"{args.name}: {len(checks) - failed} of {len(checks)} checks pass"
+          + ("" if not failed else f"; {failed} to fix"))
+    return 1 if failed else 0
 
 
 def _say(text: str = "", quiet: bool = False) -> None:
@@ -150,8 +179,8 @@ def cmd_sweep(args) -> int:
     from mpe3d.harness.experiment.sweep import load_sweep
 
     files, overrides = _split_overrides(args.files)
-    sweeps = [load_sweep(path, args.scale, args.max_runs, args.max_yaml_mb, overrides)
-              for path in files]  # all valid before any run
+    sweeps = _with_solvers([load_sweep(path, args.scale, args.max_runs, args.max_yaml_mb, overrides)
+                            for path in files], args.solver)  # all valid before any run
     _check_parallel(args)
     if args.dry_run:
         return _dry_run(sweeps)
@@ -261,7 +290,7 @@ def cmd_runs(args) -> int:
     if frame.empty:
         print(f"mpe3d: experiment '{args.experiment}' has no runs yet", file=sys.stderr)
         return 0
-    codes = frame["code"].unique()
+    codes = {code.split("+")[0] for code in frame["code"]}  # a plug-in's part is not a version of ours
     if len(codes) > 1:
         print(f"mpe3d: note: these runs were computed by {len(codes)} versions of the code "
               f"(column code); this code is {tracker.code}", file=sys.stderr)
@@ -314,7 +343,8 @@ def cmd_report(args) -> int:
     if args.sweep:  # the file first: its errors are the user's to fix, whatever the store
         from mpe3d.harness.experiment.sweep import load_sweep
 
-        sweep = load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb, args.overrides)
+        sweep = _with_solvers([load_sweep(args.sweep, args.scale, args.max_runs, args.max_yaml_mb,
+                                          args.overrides)], args.solver)[0]
     tracker = Tracker(args.tracking_uri, create=False)
     _note_journal(tracker)
     if args.sweep:
@@ -337,6 +367,33 @@ def cmd_report(args) -> int:
         print(f"mpe3d: {len(report.empty)} table(s) had no rows: {', '.join(report.empty)}", file=sys.stderr)
         return 1
     return 0
+
+
+def _with_solvers(sweeps, names):
+    """``--solver NAME``: each sweep with NAME on its solver axis, where it has one."""
+    if not names:
+        return sweeps
+    from mpe3d.harness.experiment.sweep import add_solvers
+    from mpe3d.solvers import get_solver
+
+    for name in names:  # an unknown name fails before anything runs
+        get_solver(name)
+    return [add_solvers(sweep, names) for sweep in sweeps]
+
+
+def _added_methods(sweeps, names) -> list[str]:
+    """A sentence per method added with ``--solver``: whose it is, where it ran."""
+    from mpe3d.solvers import get_solver
+
+    lines = []
+    for name in names or []:
+        spec = get_solver(name)
+        used = [s.name for s in sweeps if name in s.added]
+        left = [s.name for s in sweeps if name not in s.added]
+        lines.append(f"Added method '{name}' ({spec.origin or 'mpe3d'}; {' and '.join(spec.settings)} "
+                     f"projections): on the solver axis of {len(used)} experiments"
+                     + (f"; not in {', '.join(left)}, which compare no solvers" if left else "") + ".")
+    return lines
 
 
 def _paper_sweep_files():
@@ -368,7 +425,8 @@ def cmd_reproduce(args) -> int:
 
     start = time.time()
     commit = git_commit()
-    sweeps = [_load_paper_sweep(path, args.scale, args.overrides) for path in _paper_sweep_files()]
+    sweeps = _with_solvers([_load_paper_sweep(path, args.scale, args.overrides)
+                            for path in _paper_sweep_files()], args.solver)
     with args.shutdown.deferred():
         tracker = Tracker(args.tracking_uri)
         if args.shutdown.stopping:
@@ -391,6 +449,7 @@ def cmd_reproduce(args) -> int:
              "CD and EMD are 100 × mean distances after a rigid alignment, the scale of the authors' "
              "code; ROA is the RMS distance between corresponding points. The bundled shapes are "
              "CC0 stand-ins for ShapeNet's categories (`mpe3d shapes`)."]
+    facts += _added_methods(sweeps, args.solver)
     report = _write_report(Path(args.out), sections, "3DMPE, reproduced with mpe3d", facts)
     _wrote(report)
     if not args.no_artifacts:  # each parent run shows its experiment's part of the report
@@ -538,6 +597,15 @@ def _add_run_options(parser) -> None:
     parser.add_argument("--quiet", action="store_true", help="no progress bar, no summary")
 
 
+def _add_plugins(parser, solver_axis: bool = False) -> None:
+    parser.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                        help="load a plug-in file (solvers, datasets) first; repeatable")
+    if solver_axis:
+        parser.add_argument("--solver", action="append", default=[], metavar="NAME",
+                            help="add solver NAME to the solver axis of every sweep that compares "
+                            "solvers, in the settings it declares; repeatable")
+
+
 def _add_yaml_limit(parser) -> None:
     from mpe3d.harness.experiment.limits import MAX_YAML_MB
 
@@ -569,6 +637,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--config", metavar="FILE.yaml", help="YAML file of keys (overrides win)")
     run.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     run.add_argument("--out", metavar="DIR", help="write ground_truth.ply, reconstruction.ply and a PNG")
+    _add_plugins(run)
     _add_yaml_limit(run)
     run.set_defaults(func=cmd_run)
     sweep = sub.add_parser("sweep", help="run YAML sweeps, tracked in MLflow, resuming what is done",
@@ -582,6 +651,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="one of the files' scales, e.g. quick (default: full, the file as written)")
     _add_run_options(sweep)
     sweep.add_argument("--dry-run", action="store_true", help="list the expanded runs and stop")
+    _add_plugins(sweep, solver_axis=True)
     _add_sweep_limits(sweep)
     sweep.set_defaults(func=cmd_sweep)
     reproduce = sub.add_parser(
@@ -598,6 +668,7 @@ def build_parser() -> argparse.ArgumentParser:
     reproduce.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
                            help="overrides for every experiment, as for sweep (e.g. repeats=1)")
     _add_run_options(reproduce)
+    _add_plugins(reproduce, solver_axis=True)
     reproduce.set_defaults(func=cmd_reproduce)
     report = sub.add_parser("report", help="render tables and figures of tracked runs",
                             description="Render the tables, figures and claim checks of one "
@@ -610,6 +681,7 @@ def build_parser() -> argparse.ArgumentParser:
                         help="with --sweep: the overrides the sweep ran with")
     report.add_argument("--out", required=True, metavar="DIR", help="report folder")
     report.add_argument("--tracking-uri", metavar="URI", help=TRACKING_HELP)
+    _add_plugins(report, solver_axis=True)
     _add_sweep_limits(report)
     report.set_defaults(func=cmd_report)
     runs = sub.add_parser("runs", help="print the runs of an experiment as a table")
@@ -659,8 +731,21 @@ def build_parser() -> argparse.ArgumentParser:
     ui.add_argument("--tracking-uri", metavar="URI", help=TRACKING_HELP)
     ui.add_argument("--port", type=int, default=5000, help="the port on 127.0.0.1 (default 5000)")
     ui.set_defaults(func=cmd_ui)
-    sub.add_parser("shapes", help="list the bundled and procedural shapes").set_defaults(func=cmd_shapes)
-    sub.add_parser("solvers", help="list solvers and their options").set_defaults(func=cmd_solvers)
+    shapes = sub.add_parser("shapes", help="list the bundled and procedural shapes, and plug-in datasets")
+    _add_plugins(shapes)
+    shapes.set_defaults(func=cmd_shapes)
+    listing = sub.add_parser("solvers", help="list solvers and their options, plug-ins in their own group")
+    _add_plugins(listing)
+    listing.set_defaults(func=cmd_solvers)
+    check = sub.add_parser("check-solver", help="check a solver against the solver contract",
+                           description="Run solver NAME on small scenes and check the contract every "
+                           "solver keeps (result shapes, orthonormal projections, one result per seed, "
+                           "option rules, observations only, coordinates, exactness if claimed). One "
+                           "line per check; exit code 0 if all pass, 1 if one fails.")
+    check.add_argument("name", metavar="NAME", help="a registered solver (see mpe3d solvers)")
+    check.add_argument("--seed", type=int, default=0, help="the scenes' and the solver's seed (default 0)")
+    _add_plugins(check)
+    check.set_defaults(func=cmd_check_solver)
     parser.intermixed = {"sweep": sweep, "reproduce-paper": reproduce}
     return parser
 
@@ -692,10 +777,27 @@ def main(argv: list[str] | None = None, shutdown: Shutdown | None = None) -> int
     return code
 
 
+def _load_plugins(files) -> None:
+    """Installed plug-ins (one that fails is a line on stderr, and the rest
+    works), then the ``--plugin`` files (one that fails is the error)."""
+    import warnings
+
+    from mpe3d import plugins
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", plugins.PluginWarning)
+        plugins.load_entry_points()
+    for warning in caught:
+        if issubclass(warning.category, plugins.PluginWarning):
+            print(f"mpe3d: warning: {warning.message}", file=sys.stderr)
+    plugins.load_files(files)
+
+
 def _command(argv: list[str] | None, shutdown: Shutdown) -> int:
     try:
         args = _parse(build_parser(), sys.argv[1:] if argv is None else [str(a) for a in argv])
         args.shutdown = shutdown
+        _load_plugins(getattr(args, "plugin", []))
         if args.command in ("sweep", "reproduce-paper"):
             shutdown.line = RESUME_LINE
         return args.func(args)

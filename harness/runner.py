@@ -30,9 +30,10 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Iterable, Iterator
 
+from mpe3d import plugins
 from mpe3d.errors import DiskFull, MpeError, StoreError
 from mpe3d.harness.experiment.config import BACKENDS, RunConfig
-from mpe3d.harness.experiment.execute import failed_record, run_record
+from mpe3d.harness.experiment.execute import code_of, failed_record, run_record
 from mpe3d.harness.experiment.sweep import Sweep
 from mpe3d.harness.files import SpaceMeter, human_bytes, same_device
 from mpe3d.harness.shutdown import EXIT_CODE, GRACE_S, Shutdown, kill_descendants
@@ -118,7 +119,7 @@ def plan_sweeps(sweeps: Iterable[Sweep], tracker, rerun_failed: bool = False,
         plan = Plan(sweep=sweep, experiment_id=experiment_id, todo=[])
         if experiment_id not in planned:
             plan.zombies = tracker.close_zombies(experiment_id)
-        tracked = tracker.tracked(experiment_id)
+        tracked = tracker.tracked(experiment_id, {c.hash(): code_of(c) for c in sweep.runs})
         seen = planned.setdefault(experiment_id, set())
         for config in sweep.runs:
             key = config.hash()
@@ -290,6 +291,10 @@ class _Task:
     run_id: str | None = None  # our claim
     next_look: float = 0.0  # when to look again at another sweep's claim
 
+    @property
+    def code(self) -> str:
+        return code_of(self.config)
+
 
 class _Loop:
     """Claim, compute, journal, log: one sweep invocation's runs."""
@@ -304,6 +309,7 @@ class _Loop:
         self.waiting: list[_Task] = []  # claimed by another live sweep
         self.open_parents = [p.parent_id for p in plans if p.parent_id]
         self.foreign_code: set[str] = set()
+        self.plugin_files = tuple(str(p) for p in plugins.loaded_files())  # each worker loads them too
         self.space = SpaceMeter([journal.folder, *tracker.local_folders()])
         self.logged = 0  # results in the store or the journal
         self.lost = 0  # computed, but no room anywhere to keep them: computed again next time
@@ -336,10 +342,10 @@ class _Loop:
             plan, key = task.plan, task.config.hash()
             state, other = self.tracker.claim(plan.experiment_id, plan.parent_id, key,
                                               plan.sweep.label(task.config), self.owner,
-                                              plan.known[key])
+                                              plan.known[key], task.code)
             if state == "won":
                 task.run_id = other
-                future = self.pool.submit(run_record, task.config, self.artifacts)
+                future = self.pool.submit(run_record, task.config, self.artifacts, self.plugin_files)
                 self.in_flight[future] = task
             elif state == "busy":
                 task.next_look = time.time() + POLL_S * random.uniform(0.5, 1.5)
@@ -352,7 +358,7 @@ class _Loop:
         for task in [t for t in self.waiting if t.next_look <= now]:
             plan = task.plan
             state, _ = self.tracker.claim_state(plan.experiment_id, task.config.hash(),
-                                                plan.known[task.config.hash()])
+                                                plan.known[task.config.hash()], task.code)
             if state == "busy":
                 task.next_look = now + POLL_S * random.uniform(0.5, 1.5)
                 continue
@@ -406,10 +412,10 @@ class _Loop:
         plan.counts[record.status] += 1
         if record.error:
             plan.failures.append((plan.sweep.label(task.config), record.error))
-        if record.code != self.tracker.code and record.code not in self.foreign_code:
+        if record.code != task.code and record.code not in self.foreign_code:
             self.foreign_code.add(record.code)
             log.warning("a worker runs other code (%s, not %s): its runs are tracked as such "
-                        "and will not count as done for this code", record.code, self.tracker.code)
+                        "and will not count as done for this code", record.code, task.code)
         self.reporter.advance(record.status)
         self._close_if_done(plan)
 

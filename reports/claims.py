@@ -38,6 +38,8 @@ class Claim:
     source: str  # where the paper makes it
     experiment: str  # the MLflow experiment (sweep name) whose runs test it
     check: partial  # a criterion below with its thresholds bound
+    # the methods it is tested on; the default marks a claim about the method
+    # itself, which is also tested on every added method (a plug-in's)
     solvers: tuple[str, ...] = field(default=("sgd", "refine"))
 
     @property
@@ -356,15 +358,23 @@ CLAIMS: tuple[Claim, ...] = (
 )
 
 VERDICT_COLUMNS = {"sgd": "3DMPE (paper)", "refine": "ours (refine)"}
+METHOD_CLAIM = Claim.__dataclass_fields__["solvers"].default  # a claim about the method itself
 
 
-def check(claim: Claim, frame: pd.DataFrame) -> dict[str, Verdict]:
+def verdict_columns(added: tuple[str, ...] = ()) -> dict[str, str]:
+    """solver -> its verdict column: the paper's method, ours, and each added one."""
+    from mpe3d.reports.load import method_label
+
+    return {**VERDICT_COLUMNS, **{name: method_label(name) for name in added}}
+
+
+def check(claim: Claim, frame: pd.DataFrame, added: tuple[str, ...] = ()) -> dict[str, Verdict]:
     """The claim's verdict for each solver column (n/a where it does not apply)."""
     out = {}
-    for solver, column in VERDICT_COLUMNS.items():
+    for solver, column in verdict_columns(added).items():
         if "any" in claim.solvers and solver == "sgd":
             out[column] = claim.check(frame, None)
-        elif solver in claim.solvers:
+        elif solver in claim.solvers or (solver in added and claim.solvers == METHOD_CLAIM):
             out[column] = claim.check(frame, solver)
         else:
             out[column] = Verdict(NOT_APPLICABLE)
@@ -383,12 +393,14 @@ def runs_per_group(frame: pd.DataFrame, varying) -> int:
 
 
 def claims_table(frames: dict[str, pd.DataFrame], claims=CLAIMS,
-                 full_sizes: dict[str, int] | None = None) -> pd.DataFrame:
+                 full_sizes: dict[str, int] | None = None, added: tuple[str, ...] = ()) -> pd.DataFrame:
     """One row per claim: the claim, where, the test, and each verdict with its numbers.
 
     ``frames`` maps experiment names to their runs; a missing experiment
     counts as no runs. ``full_sizes`` gives, per experiment, the runs per
     group at the full scale: a verdict from fewer is marked provisional.
+    ``added`` solvers (plug-ins) get a verdict column each, on the claims
+    about the method itself.
     """
     from mpe3d.reports.load import varying_columns
 
@@ -400,7 +412,7 @@ def claims_table(frames: dict[str, pd.DataFrame], claims=CLAIMS,
         full = (full_sizes or {}).get(claim.experiment)
         done = frame[frame["status"] == "FINISHED"] if "status" in frame else frame
         have = runs_per_group(done, varying_columns(done)) if full and len(done) else None
-        for column, verdict in check(claim, frame).items():
+        for column, verdict in check(claim, frame, tuple(added)).items():
             row[column] = verdict.verdict
             if have is not None and have < full and verdict.verdict in (HOLDS, FAILS):
                 row[column] += f", provisional ({have} runs per group; the full scale has {full})"
@@ -424,13 +436,14 @@ def claim_lines(table: pd.DataFrame) -> tuple[pd.DataFrame, list[list[tuple[str,
     method's numbers), and what each line folds away (where, the test, every
     method's verdict with its numbers and runs)."""
     lines, details = [], []
+    columns = [c for c in table.columns if f"{c}: numbers" in table.columns]
     for _, row in table.iterrows():
-        numbers = [row[f"{c}: numbers"] for c in VERDICT_COLUMNS.values() if row[f"{c}: numbers"]]
-        lines.append({"claim": row["claim"], **{c: _mark(row[c]) for c in VERDICT_COLUMNS.values()},
+        numbers = [row[f"{c}: numbers"] for c in columns if row[f"{c}: numbers"]]
+        lines.append({"claim": row["claim"], **{c: _mark(row[c]) for c in columns},
                       "headline": numbers[0].split(";")[0] if numbers else ""})
         details.append([("where", f"{row['paper']} (experiment {row['experiment']})"),
                         ("test", row["test"])]
                        + [(c, f"{row[c]}: {row[f'{c}: numbers'] or 'no numbers'} "
                               f"({row[f'{c}: runs']} runs)")
-                          for c in VERDICT_COLUMNS.values() if row[c] != NOT_APPLICABLE])
+                          for c in columns if row[c] != NOT_APPLICABLE])
     return pd.DataFrame(lines), details

@@ -90,9 +90,10 @@ class Report:
         fig.savefig(png, dpi=120, bbox_inches="tight")
         if self.pdf:
             fig.savefig(pdf, bbox_inches="tight")
+        labels = _legend_labels(fig)
         plt.close(fig)
         self._wrote([png, pdf] if self.pdf else [png])
-        self.blocks.append(("figure", (name, caption)))
+        self.blocks.append(("figure", (name, caption, labels)))
 
     def _wrote(self, paths: list[Path]) -> None:
         self.files += paths
@@ -131,9 +132,10 @@ class Report:
             elif kind == "viewer":
                 parts.append(f"*{value[2].split(' Drag')[0]}* (turn it with the mouse in index.html)")
             else:
-                name, caption = value
+                name, caption, labels = value
                 pdf = f" · [pdf](figures/{name}.pdf)" if self.pdf else ""
-                parts.append(f"![{caption}](figures/{name}.png)\n\n*{caption}* "
+                key = f" Key: {'; '.join(labels)}." if labels else ""
+                parts.append(f"![{caption}](figures/{name}.png)\n\n*{caption}*{key} "
                              f"([png](figures/{name}.png){pdf})")
         return "\n\n".join(parts) + "\n"
 
@@ -163,9 +165,10 @@ class Report:
                             f"</figcaption><script type='application/json' id='{ident}'>{payload}"
                             "</script></figure>")
             else:
-                name, caption = value
+                name, caption, labels = value
                 pdf = f" (<a href='figures/{name}.pdf'>pdf</a>)" if self.pdf else ""
-                body.append(f"<figure><img src='figures/{name}.png' alt='{html.escape(name)}'>"
+                alt = f"{name}: {'; '.join(labels)}" if labels else name
+                body.append(f"<figure><img src='figures/{name}.png' alt='{html.escape(alt, quote=True)}'>"
                             f"<figcaption>{html.escape(caption)}{pdf}</figcaption></figure>")
         script = "<script src='viewer.js'></script>" if any(k == "viewer" for k, _ in self.blocks) else ""
         return (f"<!DOCTYPE html>\n<html lang='en'><head><meta charset='utf-8'>"
@@ -198,3 +201,11 @@ _CSS = ("body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 
         ".folded summary{cursor:pointer;list-style:none}.folded summary::-webkit-details-marker{display:none}"
         ".folded-head{font-weight:bold}.folded dl{margin:0.3em 0 0.8em 1.5em;font-size:0.85em}"
         ".folded dt{font-weight:bold;margin-top:0.3em}.folded dd{margin:0 0 0 1em}")
+
+
+def _legend_labels(fig) -> list[str]:
+    """What a figure's legends name (its lines and marks), each once: said
+    beside the figure, for a reader who cannot see the colours."""
+    legends = [*fig.legends, *(ax.get_legend() for ax in fig.axes)]
+    texts = [t.get_text() for legend in legends if legend is not None for t in legend.get_texts()]
+    return list(dict.fromkeys(t for t in texts if t))

@@ -14,7 +14,7 @@ from typing import Callable
 
 import pandas as pd
 
-from mpe3d.harness.tracking.identity import code_identity
+from mpe3d.harness.tracking.identity import code_identity, is_current
 from mpe3d.reports import figures, tables
 from mpe3d.reports.claims import claim_lines, claims_table
 from mpe3d.reports.document import Report
@@ -248,13 +248,14 @@ def code_note(frame: pd.DataFrame, current: str) -> tuple[str, str]:
     if frame.empty or "code" not in frame:
         return "", ""
     counts = frame["code"].value_counts()
-    listed = ", ".join(f"{code}{' (this code)' if code == current else ''}: {n} run(s)"
+    listed = ", ".join(f"{code}{' (this code)' if is_current(code, current) else ''}: {n} run(s)"
                        for code, n in counts.items())
-    if len(counts) == 1:
+    ours = {code.split("+")[0] for code in counts.index}  # a plug-in's part is its own, not a version
+    if len(ours) == 1:
         return f"Computed by code {listed}.", ""
-    return (f"These runs were computed by {len(counts)} different versions of the code ({listed}); "
+    return (f"These runs were computed by {len(ours)} different versions of the code ({listed}); "
             "rerun the sweep without --reuse-stale to compute them all with this code.",
-            f"Mixes runs of {len(counts)} code versions (see the section text).")
+            f"Mixes runs of {len(ours)} code versions (see the section text).")
 
 
 def render_section(report: Report, section: Section) -> None:
@@ -284,6 +285,16 @@ def render_section(report: Report, section: Section) -> None:
         add_viewers(report, rows, section.client, section.name)
 
 
+def added_solvers(frames) -> tuple[str, ...]:
+    """The solvers in these runs that are not mpe3d's own (plug-ins), by name."""
+    from mpe3d.solvers import SOLVERS
+
+    ours = {name for name, spec in SOLVERS.items() if spec.origin is None}
+    names = {name for frame in frames if "solver.name" in frame and "pipeline" in frame
+             for name in frame.loc[frame["pipeline"] != "colmap", "solver.name"].dropna()}
+    return tuple(sorted(names - ours))
+
+
 def write(out: Path, sections: list[Section], title: str, facts: list[str] | None = None,
           claims: bool = True, pdf: bool = True) -> Report:
     """Render ``sections`` and (with ``claims``) the claims they can test into
@@ -294,7 +305,8 @@ def write(out: Path, sections: list[Section], title: str, facts: list[str] | Non
         report.text(line)
     frames = {s.name: s.frame for s in sections}
     full = {s.name: s.full_runs_per_group for s in sections if s.full_runs_per_group}
-    table = claims_table(frames, full_sizes=full) if claims else pd.DataFrame(columns=["experiment"])
+    table = claims_table(frames, full_sizes=full, added=added_solvers(frames.values())) if claims \
+        else pd.DataFrame(columns=["experiment"])
     checked = table[table["experiment"].isin(frames)]
     if len(checked):
         report.heading("Claims")

@@ -45,13 +45,17 @@ def solvers_page() -> str:
 
     lines = ["# Solvers", "",
              "Chosen with `solver=NAME` (`mpe3d run`, sweeps) and given options with "
-             "`solver.OPTION=VALUE`. `mpe3d solvers` prints the same list.", ""]
+             "`solver.OPTION=VALUE`. `mpe3d solvers` prints the same list, with the "
+             "plug-ins installed or loaded (`--plugin FILE`) in groups of their own; "
+             "[Benchmark your method](../guide/plugins.md) shows how to add one.", ""]
     for whose, paper in (("The paper's", True), ("Ours", False)):
         lines += [f"## {whose}", ""]
         for name, spec in sorted(solvers.SOLVERS.items()):
-            if spec.paper != paper:
+            if spec.paper != paper or spec.origin is not None:  # mpe3d's own only
                 continue
-            lines += [f"### `{name}`", "", spec.summary + ".", "",
+            claims = ", ".join([*(["exact on noise-free views"] if spec.exact else []),
+                                f"settings: {' and '.join(spec.settings)}"])
+            lines += [f"### `{name}`", "", f"{spec.summary} ({claims}).", "",
                       "| option | default | allowed |", "|---|---|---|"]
             lines += [f"| `solver.{option}` | `{default}` | {_cell(spec.constraints[option])} |"
                       for option, default in spec.options().items()]

@@ -8,16 +8,19 @@ of it. Neither imports the harness or the reports.
 from mpe3d.solvers import baseline, factorize, refine, sgd  # noqa: F401  (registration)
 from mpe3d.solvers.base import (
                    SOLVERS,
+                   Choice,
+                   Interval,
                    Observations,
                    Reconstruction,
                    View,
                    check_observations,
                    get_solver,
-                   register,
-                   solve,
+                   register_solver,
                    solver_options,
                    validate_options,
 )
+from mpe3d.solvers.dispatch import solve
 
-__all__ = ["Observations", "Reconstruction", "SOLVERS", "View", "check_observations",
-           "get_solver", "register", "solve", "solver_options", "validate_options"]
+__all__ = ["Choice", "Interval", "Observations", "Reconstruction", "SOLVERS", "View",
+           "check_observations", "get_solver", "register_solver", "solve", "solver_options",
+           "validate_options"]

@@ -1,34 +1,34 @@
 """The common solver interface: observations in, a reconstruction out.
 
 Every solver is a function ``solve(observations, *, random_state, [init,]
-**options) -> Reconstruction`` registered under a name with :func:`register`,
+**options) -> Reconstruction`` registered under a name with :func:`register_solver`,
 which also takes each option's rule (:class:`Interval`, :class:`Choice`),
 declared next to the function as scikit-learn's ``_parameter_constraints``
 are. Options are plain keyword arguments with defaults; :func:`validate_options`
 checks ``solver.<option>`` keys against their types and rules, in one place.
 
 Solvers import nothing from the harness, only :mod:`mpe3d.errors` (the error
-type and its message helpers): what they may see is exactly an
-:class:`Observations`, which holds no ground truth.
+type and its message helpers) and :mod:`mpe3d.plugins` (whose solver a name
+is): what they may see is exactly an :class:`Observations`, which holds no
+ground truth. :func:`mpe3d.solvers.dispatch.solve` runs one.
 """
 
 from __future__ import annotations
 
-import importlib
 import inspect
 import os
-import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
 from scipy.spatial.distance import cdist
 
+from mpe3d import plugins
 from mpe3d.errors import MpeError, coerce, suggest
+from mpe3d.plugins import Origin
 from mpe3d.solvers.linalg import classical_mds
 
 _RESERVED = ("observations", "init", "random_state")
-INITS = ("smart", "random")
 
 
 @dataclass(frozen=True)
@@ -146,16 +146,23 @@ class Choice:
         return "one of " + ", ".join(self.names)
 
 
+SETTINGS = ("fixed", "variable")  # given projections P^k, or estimated ones
+
+
 @dataclass(frozen=True)
 class SolverSpec:
     """A registered solver: its function, its options' rules, and whose it is.
 
     ``paper`` is True for the paper's methods (its SGD and its MDS baseline)
-    and False for ours; ``uses_init`` says whether it takes a starting point
-    (``init``), so that callers do not hand one to a solver that ignores it.
+    and False for the others; ``uses_init`` says whether it takes a starting
+    point (``init``), so that callers do not hand one to a solver that
+    ignores it. ``settings`` are those it solves (fixed and/or variable
+    projections); ``exact`` claims that it recovers a noise-free scene up to
+    a rigid motion, which :func:`mpe3d.testing.check_solver` then checks.
     ``imports`` are the modules it imports when it runs, imported before its
     clock starts: a one-off import (scikit-learn's takes seconds on a cold
-    worker) is no part of a solve's runtime.
+    worker) is no part of a solve's runtime. ``origin`` is the plug-in it
+    came from (``None``: mpe3d's own).
     """
 
     name: str
@@ -165,6 +172,9 @@ class SolverSpec:
     summary: str
     uses_init: bool
     imports: tuple[str, ...] = ()
+    settings: tuple[str, ...] = SETTINGS
+    exact: bool = False
+    origin: Origin | None = None
 
     def options(self) -> dict[str, Any]:
         """The options with their defaults, from the function's signature."""
@@ -174,31 +184,65 @@ class SolverSpec:
 
 
 SOLVERS: dict[str, SolverSpec] = {}
+plugins.add_registry("solver", SOLVERS)
 
 
-def register(name: str, *, constraints: dict[str, Interval | Choice], paper: bool, summary: str,
-             imports: tuple[str, ...] = ()):
-    """Register ``func`` as solver ``name``.
+def register_solver(name: str, *, constraints: dict[str, Interval | Choice] | None = None,
+                    summary: str = "", paper: bool = False, settings: tuple[str, ...] = SETTINGS,
+                    exact: bool = False, imports: tuple[str, ...] = ()):
+    """Register the decorated function as solver ``name`` (a decorator).
 
-    Its keyword defaults are its options; ``constraints`` gives each option's
-    rule and must cover every option, so that none goes unchecked. ``imports``
-    names the modules it imports lazily (see :class:`SolverSpec`).
+    The function is ``solve(observations, *, random_state, [init,] **options)
+    -> Reconstruction``: it sees only the :class:`Observations`, draws every
+    random number from ``random_state`` (a ``numpy.random.Generator``), and
+    returns the points ``(N, 3)``, the projections ``(K, 2, 3)`` (the given
+    ones in the fixed setting), ``stress_history`` (its objective at the start
+    and after each iteration), ``iterations`` (``len(stress_history) - 1``)
+    and ``termination``; ``stress`` may be left ``None``, and the Eq. 1 stress
+    of the result is filled in. ``runtime_s`` is measured by :func:`solve`.
+
+    Parameters
+    ----------
+    name : str
+        The name sweeps and the command line use (``solver=name``).
+    constraints : dict, default None
+        Each keyword option's rule (:class:`Interval` or :class:`Choice`); it
+        must cover every option, so that none goes unchecked.
+    summary : str, default ""
+        One line for ``mpe3d solvers`` and the reference docs.
+    paper : bool, default False
+        True only for the paper's own methods.
+    settings : tuple of {"fixed", "variable"}, default both
+        The settings it solves; the others are refused in one line.
+    exact : bool, default False
+        It recovers noise-free views exactly (checked by ``check-solver``).
+    imports : tuple of str, default ()
+        Modules it imports lazily: imported before its clock starts.
     """
+    constraints = dict(constraints or {})
+    unknown = set(settings) - set(SETTINGS) if settings else {"(none)"}
+    if unknown:
+        raise TypeError(f"solver {name}: settings must be some of {SETTINGS}, got {tuple(settings)}")
+
     def decorator(func):
-        spec = SolverSpec(name, func, dict(constraints), paper, summary,
-                          "init" in inspect.signature(func).parameters, tuple(imports))
+        spec = SolverSpec(name, func, constraints, paper, summary,
+                          "init" in inspect.signature(func).parameters, tuple(imports),
+                          tuple(settings), exact)
         missing = set(spec.options()) ^ set(constraints)
         if missing:
             raise TypeError(f"solver {name}: options and constraints differ on {sorted(missing)}")
-        SOLVERS[name] = spec
+        origin = plugins.claim("solver", name, func)
+        SOLVERS[name] = replace(spec, origin=origin)
         return func
     return decorator
 
 
 def get_solver(name: str) -> SolverSpec:
     if name not in SOLVERS:
-        raise MpeError(f"unknown solver '{name}' (known: {', '.join(sorted(SOLVERS))})",
-                       key="solver.name", hint=suggest(name, SOLVERS))
+        plugins.load_entry_points()  # an installed plug-in's name: read them now, once
+    if name not in SOLVERS:
+        raise MpeError(f"unknown solver '{name}' (known: {', '.join(sorted(SOLVERS))})"
+                       + plugins.failure_note("solver"), key="solver.name", hint=suggest(name, SOLVERS))
     return SOLVERS[name]
 
 
@@ -263,48 +307,3 @@ def check_observations(obs: Observations) -> None:
             raise MpeError(f"view {k}: a point id appears twice")
     if obs.projections is not None and obs.projections.shape != (obs.n_views, 2, 3):
         raise MpeError(f"projections have shape {obs.projections.shape}, expected ({obs.n_views}, 2, 3)")
-
-
-def solve(name: str, observations: Observations, *, init: str = "smart",
-          random_state: int | np.random.Generator | None = None,
-          **options: Any) -> Reconstruction:
-    """Run solver ``name`` on ``observations`` and time it.
-
-    Parameters
-    ----------
-    name : str
-        A registered solver (``mpe3d solvers`` lists them): ``sgd`` and
-        ``baseline`` are the paper's, ``factorize`` and ``refine`` ours.
-    observations : Observations
-        The views, and the projections in the fixed setting.
-    init : {"smart", "random"}, default "smart"
-        The starting point, for solvers that take one (``sgd``); the others
-        ignore it.
-    random_state : int, Generator or None, default None
-        Seeds everything random in the solver.
-    **options
-        The solver's options (``solver_options(name)``), checked against
-        their declared rules.
-
-    Returns
-    -------
-    Reconstruction
-        ``runtime_s`` is the solver alone, validation excluded.
-    """
-    spec = get_solver(name)
-    options = validate_options(name, options)
-    check_observations(observations)
-    if spec.uses_init:
-        if init not in INITS:
-            raise MpeError(f"init: expected one of {', '.join(INITS)}, got {init!r}", key="init")
-        options["init"] = init
-    rng = np.random.default_rng(random_state)
-    for module in spec.imports:  # outside the timed region
-        importlib.import_module(module)
-    from mpe3d.solvers import kernels
-
-    kernels.warm()  # compiled, or loaded from numba's disk cache, before the clock too
-    start = time.perf_counter()
-    result = spec.func(observations, random_state=rng, **options)
-    result.runtime_s = time.perf_counter() - start
-    return result

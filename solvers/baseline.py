@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register
+from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register_solver
 from mpe3d.solvers.starts import fit_projections, mds_embedding
 from mpe3d.solvers.stress import Stress
 
@@ -19,7 +19,7 @@ _PARAMETER_CONSTRAINTS = {
 }
 
 
-@register("baseline", constraints=_PARAMETER_CONSTRAINTS, paper=True,
+@register_solver("baseline", constraints=_PARAMETER_CONSTRAINTS, paper=True,
           summary="the paper's baseline: MDS of the completed distance matrix")
 def solve_baseline(observations: Observations, *, random_state=None,
                    method: str = "smacof", max_iter: int = 300) -> Reconstruction:

@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import least_squares
 
-from mpe3d.solvers.base import Interval, Observations, Reconstruction, register
+from mpe3d.solvers.base import Interval, Observations, Reconstruction, register_solver
 from mpe3d.solvers.degenerate import check_geometry, warn
 from mpe3d.solvers.linalg import (
     elongation,
@@ -399,7 +399,7 @@ _PARAMETER_CONSTRAINTS = {
 }
 
 
-@register("factorize", constraints=_PARAMETER_CONSTRAINTS, paper=False,
+@register_solver("factorize", constraints=_PARAMETER_CONSTRAINTS, paper=False, exact=True,
           summary="ours: exact algebraic solution (per-view MDS, factorisation, metric upgrade)")
 def solve_factorize(observations: Observations, *, random_state=None,
                     max_iter: int = 2000, tol: float = 1e-13) -> Reconstruction:

@@ -16,7 +16,7 @@ import itertools
 import numpy as np
 
 from mpe3d.solvers import kernels, lbfgs
-from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register
+from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register_solver
 from mpe3d.solvers.factorize import solve_factorize
 from mpe3d.solvers.stress import STRESS_LOSSES, Stress
 
@@ -102,7 +102,7 @@ _PARAMETER_CONSTRAINTS = {
 }
 
 
-@register("refine", constraints=_PARAMETER_CONSTRAINTS, paper=False,
+@register_solver("refine", constraints=_PARAMETER_CONSTRAINTS, paper=False, exact=True,
           summary="ours: factorize, then full-batch L-BFGS on the stress (robust losses optional)")
 def solve_refine(observations: Observations, *, random_state=None,
                  loss: str = "l2", max_iter: int = 500, tol: float = 1e-12,

@@ -35,7 +35,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.distance import cdist
 
-from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register
+from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register_solver
 from mpe3d.solvers.starts import fit_projections, mds_embedding
 from mpe3d.solvers.stress import Stress, project_rows
 
@@ -138,7 +138,7 @@ _PARAMETER_CONSTRAINTS = {
 }
 
 
-@register("sgd", constraints=_PARAMETER_CONSTRAINTS, paper=True,
+@register_solver("sgd", constraints=_PARAMETER_CONSTRAINTS, paper=True,
           summary="the paper's 3DMPE: minibatch SGD with an adaptive step from the smart start")
 def solve_sgd(observations: Observations, *, init: str = "smart", random_state=None,
               c: float = 1.0, max_iter: int = 300, tol: float = 1e-4, step: str = "mm",

@@ -13,13 +13,14 @@ from typing import Any
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from mpe3d import plugins
 from mpe3d.errors import MpeError
 from mpe3d.harness.experiment import colmap_pipeline, points_pipeline
 from mpe3d.harness.experiment.config import RunConfig
 from mpe3d.harness.experiment.limits import check_run_memory
 from mpe3d.harness.experiment.result import Pipeline, RunResult
 from mpe3d.harness.scene.observe import seed_streams
-from mpe3d.harness.tracking.identity import code_identity
+from mpe3d.harness.tracking.identity import run_code
 from mpe3d.harness.tracking.records import RunRecord
 
 # BLAS sums in another order with another thread count, which moves results by
@@ -45,9 +46,14 @@ def _run(config: RunConfig) -> RunResult:
     return replace(result, wall_s=time.perf_counter() - start)
 
 
+def code_of(config: RunConfig) -> str:
+    """The identity of the code that computes ``config``: ours, and its plug-ins'."""
+    return run_code(config.solver, config["shape"])
+
+
 def _made_by(config: RunConfig) -> dict[str, Any]:
     """Which run a record is of, and the code that computed it."""
-    return {"config_hash": config.hash(), "params": config.flat(), "code": code_identity()}
+    return {"config_hash": config.hash(), "params": config.flat(), "code": code_of(config)}
 
 
 def failed_record(config: RunConfig, error: str, trace: str = "", start: float | None = None,
@@ -59,11 +65,13 @@ def failed_record(config: RunConfig, error: str, trace: str = "", start: float |
                      facts=facts or {}, error=error, traceback=trace)
 
 
-def run_record(config: RunConfig, keep_clouds: bool = True) -> RunRecord:
-    """Run ``config`` in a worker and return what the parent will log."""
+def run_record(config: RunConfig, keep_clouds: bool = True, plugin_files=()) -> RunRecord:
+    """Run ``config`` in a worker and return what the parent will log; the
+    parent's plug-in files are loaded first (once per worker)."""
     start = time.time()
     worker = {"worker": f"{socket.gethostname()}:{os.getpid()}"}
     try:
+        plugins.load_files(plugin_files)
         result = run(config)
     except Exception as exc:  # noqa: BLE001 - any failure is this run's result, not the sweep's
         message = str(exc) if isinstance(exc, MpeError) else f"{type(exc).__name__}: {exc}"

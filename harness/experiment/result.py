@@ -10,7 +10,7 @@ import numpy as np
 from mpe3d import solvers
 from mpe3d.harness.experiment.config import RunConfig
 from mpe3d.harness.scene.observe import Scene
-from mpe3d.harness.tracking.identity import code_identity
+from mpe3d.harness.tracking.identity import run_code
 
 METRIC_KEYS = ("cd", "cd_mean", "emd", "emd_mean", "roa", "stress", "iterations", "runtime_s")
 
@@ -36,7 +36,7 @@ class RunResult:
         out["warnings"] = self.facts.get("warnings", [])
         out["termination"] = self.reconstruction.termination
         out["wall_s"] = self.wall_s
-        out["code"] = code_identity()
+        out["code"] = run_code(self.config.solver, self.config["shape"])
         return out
 
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
@@ -43,7 +43,7 @@ from mpe3d.harness.experiment.config import (
 from mpe3d.harness.experiment.limits import check_run_count, check_run_memory
 from mpe3d.harness.scene.shapes import check_shape
 
-TOP_LEVEL = ("name", "description", "base", "grid", "zip", "repeats", "seeds", "scale")
+TOP_LEVEL = ("name", "description", "plugins", "base", "grid", "zip", "repeats", "seeds", "scale")
 SCALABLE = ("base", "grid", "zip", "repeats", "seeds")  # what a scale may override
 FULL = "full"  # the scale of a file as written
 
@@ -62,6 +62,8 @@ class Sweep:
     scale: str = FULL
     scales: tuple[str, ...] = (FULL,)  # every scale the file offers
     overrides: tuple[str, ...] = ()  # KEY=VALUE given on the command line
+    plugins: tuple[Path, ...] = ()  # the plug-in files it loads (its ``plugins`` key)
+    added: tuple[str, ...] = ()  # solvers put on its solver axis by add_solvers
 
     def label(self, config: RunConfig) -> str:
         """``views=4 projections=fixed seed=0``: what sets this run apart."""
@@ -374,6 +376,7 @@ def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
     for key in data:
         if key not in TOP_LEVEL:
             raise src.error(f"unknown key '{key}'", str(key), suggest(str(key), TOP_LEVEL))
+    plugin_files = _load_plugins(data.get("plugins"), path, src)  # before any key names a solver
     scales = _scales(data, src)
     data, lines = _apply_scale(data, lines, scale, scales, src)
     if overrides:
@@ -400,7 +403,55 @@ def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
                  sha256=hashlib.sha256(path.read_bytes() + "\n".join(overrides).encode()).hexdigest(),
                  runs=tuple(unique),
                  varying=varying_keys(unique), collapsed=len(runs) - len(unique),
-                 scale=scale, scales=(FULL, *scales), overrides=tuple(overrides))
+                 scale=scale, scales=(FULL, *scales), overrides=tuple(overrides),
+                 plugins=plugin_files)
+
+
+def _load_plugins(value, path: Path, src: "_Source") -> tuple[Path, ...]:
+    """The ``plugins`` key: plug-in files, relative to the sweep file, loaded now."""
+    from mpe3d.plugins import PluginError, load_file
+
+    if value is None:
+        return ()
+    if isinstance(value, str):
+        value = [value]
+    if not isinstance(value, list) or not all(isinstance(v, str) and v for v in value):
+        raise src.error(f"plugins: expected a list of Python files, got {value!r}", "plugins")
+    files = tuple((path.parent / Path(v).expanduser()).resolve() for v in value)
+    for file in files:
+        try:
+            load_file(file)
+        except PluginError as exc:
+            raise src.error(f"plugins: {exc}", "plugins") from None
+    return files
+
+
+def add_solvers(sweep: Sweep, names: Sequence[str]) -> Sweep:
+    """``sweep`` with solvers ``names`` put on its solver axis.
+
+    A sweep has a solver axis when its ``points`` runs use two solvers or
+    more (one compared with another); each such run is then run again with
+    each added solver, in the settings (fixed, variable) the solver declares.
+    The sweep's own runs, and so their hashes and tracked results, are
+    unchanged. A sweep without a solver axis is returned as it is.
+    """
+    from mpe3d.solvers import get_solver
+
+    points = [c for c in sweep.runs if c["pipeline"] == "points"]
+    if len({c.solver for c in points}) < 2:
+        return sweep
+    known = {c.hash() for c in sweep.runs}
+    added: dict[str, RunConfig] = {}
+    for name in names:
+        settings = get_solver(name).settings
+        for config in points:
+            if config["projections"] in settings:
+                other = config.replace(**{"solver.name": name})
+                if other.hash() not in known:
+                    added.setdefault(other.hash(), other)
+    runs = sweep.runs + tuple(added.values())
+    return replace(sweep, runs=runs, varying=varying_keys(runs),
+                   added=tuple(dict.fromkeys((*sweep.added, *names))))
 
 
 def varying_keys(configs: Iterable[RunConfig]) -> tuple[str, ...]:

@@ -35,7 +35,7 @@ def seed_streams(seed: int) -> dict[str, np.random.Generator]:
 class Scene:
     """The ground truth of one run."""
 
-    mesh: trimesh.Trimesh
+    mesh: trimesh.Trimesh | None  # None: a plug-in dataset gave samples only
     points: np.ndarray  # (N, 3)
     rotations: np.ndarray  # (K, 3, 3)
     visible: np.ndarray  # (K, N) bool: the visibility vectors
@@ -64,6 +64,10 @@ def _visibility(config: Mapping[str, Any], mesh, points, R, rng) -> np.ndarray:
         return visibility.count(K, N, kept if kept is not None else round(0.75 * N), rng)
     if mode == "zbuffer":
         return visibility.zbuffer(points, R, config["visibility.n_rays"])
+    if mesh is None:
+        raise MpeError(f"shape '{config['shape']}' gives surface samples, not a mesh: "
+                       "visibility.mode=raytrace needs a mesh (use zbuffer, exact, count or all)",
+                       key="visibility.mode")
     return visibility.raytrace(mesh, points, R)
 
 
@@ -74,8 +78,7 @@ def build_scene(config: Mapping[str, Any], streams=None) -> Scene:
     at least m views: they are both the ground truth and what is observed.
     """
     streams = streams or seed_streams(config["seed"])
-    mesh = shapes.load_shape(config["shape"])
-    points = shapes.sample_points(mesh, config["points"], streams["sampling"])
+    mesh, points = shapes.shape_samples(config["shape"], config["points"], streams["sampling"])
     if config["view_layout"] == "sphere":
         R = viewpoints.sphere_rotations(config["views"], streams["views"])
     else:

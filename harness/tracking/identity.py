@@ -169,3 +169,46 @@ def git_commit() -> str | None:
     except (OSError, subprocess.SubprocessError):
         return None
     return commit.stdout.strip() + ("+dirty" if dirty else "")
+
+
+def _plugin_fingerprint(origin) -> str:
+    digest = hashlib.sha256()
+    root = origin.path if origin.path and origin.path.is_dir() else None
+    for path in origin.sources():
+        name = path.relative_to(root) if root else path.name
+        try:
+            part = source_fingerprint(path.read_text())
+        except (OSError, SyntaxError, ValueError):  # unreadable now: its bytes, or nothing
+            part = hashlib.sha256(path.read_bytes()).hexdigest() if path.is_file() else "missing"
+        digest.update(f"{name}:{part}\n".encode())
+    return digest.hexdigest()[:12]
+
+
+_FINGERPRINTS: dict = {}
+
+
+def plugin_identity(origin) -> str:
+    """``<plug-in>-<version>/<fingerprint>``: a plug-in's part of a run's code
+    identity, by the same canonical-tree method as ours, over its file or every
+    module of its package (``file`` stands for the version of a lone file)."""
+    stamps = tuple((str(p), p.stat().st_mtime_ns) for p in origin.sources() if p.is_file())
+    key = (origin, stamps)
+    if key not in _FINGERPRINTS:
+        _FINGERPRINTS[key] = _plugin_fingerprint(origin)
+    return f"{origin.name}-{origin.version or 'file'}/{_FINGERPRINTS[key]}"
+
+
+def run_code(solver: str, shape: str) -> str:
+    """The code identity of a run of ``solver`` on ``shape``: ours, and that of
+    each plug-in it uses (its solver; its dataset for ``shape=NAME:item``),
+    joined by ``+``. Editing a plug-in changes its runs' identity and no other's."""
+    from mpe3d import plugins
+
+    plugins.load_entry_points()
+    used = [plugins.owner("solver", solver), plugins.owner("dataset", shape.partition(":")[0])]
+    return "+".join([code_identity(), *(plugin_identity(o) for o in used if o)])
+
+
+def is_current(code: str, current: str) -> bool:
+    """Whether a run's ``code`` is ``current`` code, a plug-in's part aside."""
+    return code == current or code.startswith(current + "+")

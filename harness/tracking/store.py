@@ -17,13 +17,13 @@ import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 
 from mpe3d.errors import DiskFull, MpeError, StoreError, first_line, suggest
 from mpe3d.harness.files import failed_path, free_bytes, human_bytes, no_space
-from mpe3d.harness.tracking.identity import code_identity, git_commit
+from mpe3d.harness.tracking.identity import code_identity, git_commit, is_current
 from mpe3d.harness.tracking.ownership import STALE_S, Owner
 
 DEFAULT_URI = "sqlite:///mlflow.db"
@@ -281,8 +281,10 @@ class Tracker:
             if not token:
                 return
 
-    def tracked(self, experiment_id: str) -> dict[str, Tracked]:
-        """config hash -> what the store holds for it, judged by the running code."""
+    def tracked(self, experiment_id: str, codes: Mapping[str, str] | None = None) -> dict[str, Tracked]:
+        """config hash -> what the store holds for it, judged by the running code
+        (``codes``: each config's own, where a plug-in adds its part)."""
+        codes = codes or {}
         out: dict[str, Tracked] = {}
         with _store_errors(self.uri, "read its runs"):
             for run in self._runs(experiment_id):
@@ -290,7 +292,7 @@ class Tracker:
                 if not key:
                     continue
                 entry = out.setdefault(key, Tracked())
-                if run.data.tags.get(CODE_TAG) != self.code:
+                if run.data.tags.get(CODE_TAG) != codes.get(key, self.code):
                     entry.stale += status == "FINISHED"
                     continue
                 if status in ("FINISHED", "FAILED"):
@@ -307,8 +309,9 @@ class Tracker:
                 PARENT_TAG: parent_id, OWNER_TAG: owner.tag(), "mlflow.runName": run_name}
 
     def claim(self, experiment_id: str, parent_id: str, config_hash: str, run_name: str,
-              owner: Owner, known: set[str]) -> tuple[str, Any]:
-        """Try to own the computation of one config by the running code.
+              owner: Owner, known: set[str], code: str | None = None) -> tuple[str, Any]:
+        """Try to own the computation of one config by the running code (``code``
+        if a plug-in adds its part to it).
 
         Create our claim, then look for others: a run that FINISHED or FAILED
         since the plan (``known`` holds the ones before it) means another sweep
@@ -318,22 +321,24 @@ class Tracker:
 
         Returns ``("won", run_id)``, ``("busy", run)`` or ``("done", run)``.
         """
-        key = claim_key(self.code, config_hash)
+        code = code or self.code
+        key = claim_key(code, config_hash)
         with _store_errors(self.uri, "claim a run"):
             mine = self.client.create_run(experiment_id, run_name=run_name, tags=self._child_tags(
-                parent_id, config_hash, self.code, owner, run_name)).info.run_id
+                parent_id, config_hash, code, owner, run_name)).info.run_id
             state, other = self._claim_state(experiment_id, key, known, mine)
             if state == "free":
                 return "won", mine
             self.client.delete_run(mine)
         return ("busy" if state == "busy" else "done"), other
 
-    def claim_state(self, experiment_id: str, config_hash: str, known: set[str]) -> tuple[str, Any]:
+    def claim_state(self, experiment_id: str, config_hash: str, known: set[str],
+                    code: str | None = None) -> tuple[str, Any]:
         """``("done" | "busy" | "free", run)``: has another sweep computed this
         config since the plan, is one computing it, or may we claim it? A claim
         whose owner died is closed as KILLED here, and the config is free."""
         with _store_errors(self.uri, "read a claim"):
-            return self._claim_state(experiment_id, claim_key(self.code, config_hash), known)
+            return self._claim_state(experiment_id, claim_key(code or self.code, config_hash), known)
 
     def _claim_state(self, experiment_id, key, known, mine=None) -> tuple[str, Any]:
         runs = [r for r in self._runs(experiment_id, f"tags.`{CLAIM_TAG}` = '{key}'")
@@ -429,7 +434,7 @@ class Tracker:
         tags = {CODE_TAG: record.code, CLAIM_TAG: claim_key(record.code, record.config_hash),
                 **{f"mpe3d.{k}": str(v) for k, v in record.facts.items()}}
         commit = git_commit()
-        if commit and record.code == self.code:
+        if commit and is_current(record.code, self.code):
             tags["mpe3d.git_commit"] = commit
         if record.error:
             tags[ERROR_TAG] = record.error[:5000]
@@ -538,7 +543,7 @@ class Tracker:
             return frame
         if not history:  # reruns (--force, --rerun-failed) leave older runs of a config behind
             rank = frame["status"].map(STATUS_RANK).fillna(0)
-            current = frame["code"] == self.code
+            current = frame["code"].map(lambda code: is_current(code, self.code))
             order = frame.assign(_rank=rank, _current=current).sort_values(
                 ["_rank", "_current", "start_time"]).index
             frame = frame.loc[order].drop_duplicates("config_hash", keep="last").sort_index()

@@ -39,6 +39,11 @@ _PUBLIC = {
     "make_config": "mpe3d.harness.experiment.config",
     "load_sweep": "mpe3d.harness.experiment.sweep",
     "Tracker": "mpe3d.harness.tracking.store",
+    "register_solver": "mpe3d.solvers",
+    "Interval": "mpe3d.solvers",
+    "Choice": "mpe3d.solvers",
+    "Reconstruction": "mpe3d.solvers",
+    "register_dataset": "mpe3d.harness.scene.shapes",
 }
 
 __all__ = list(_PUBLIC)

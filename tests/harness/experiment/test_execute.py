@@ -10,7 +10,7 @@ from mpe3d import solvers
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.experiment.execute import run
 from mpe3d.harness.scene.metrics import align_ransac4
-from mpe3d.solvers.base import SOLVERS, register
+from mpe3d.solvers.base import SOLVERS, register_solver
 from tests.helpers import scene_and_observations
 
 NOISY = {"shape": "chair", "points": 96, "views": 4, "projections": "variable",
@@ -72,7 +72,7 @@ def test_lazy_imports_happen_before_the_clock(monkeypatch):
 
     from mpe3d.solvers import kernels
 
-    @register("lazy-probe", constraints={}, paper=False, summary="test", imports=("colorsys",))
+    @register_solver("lazy-probe", constraints={}, paper=False, summary="test", imports=("colorsys",))
     def probe(observations, *, random_state=None):
         seen["imported"] = "colorsys" in sys.modules
         seen["compiled"] = kernels.warmed

@@ -1,0 +1,15 @@
+"""Checks for the authors of solvers, as ``sklearn.utils.estimator_checks`` is
+for estimators: hold your method to the contract every mpe3d solver keeps.
+
+    from mpe3d.testing import check_solver
+
+    def test_my_solver_keeps_the_contract():
+        assert check_solver("mine") == []
+
+The same checks run on the command line as ``mpe3d check-solver NAME``. What
+each one asks is in :mod:`mpe3d.harness.experiment.contract`.
+"""
+
+from mpe3d.harness.experiment.contract import Check, check_solver, run_checks
+
+__all__ = ["Check", "check_solver", "run_checks"]
