@@ -149,9 +149,8 @@ def test_datasets_and_samples_are_seeded_and_normalised(plugin):
 
 SWEEP = """
 name: plug
-plugins: [{plugin}]
-base: {{shape: torus, points: 48, views: 4}}
-grid: {{solver: [refine, avgmds], projections: [fixed, variable]}}
+base: {shape: torus, points: 48, views: 4}
+grid: {solver: [refine, avgmds], projections: [fixed, variable]}
 """
 
 
@@ -167,13 +166,15 @@ def codes(uri):
 @pytest.mark.slow  # three real sweeps with two workers: the full suite runs it
 def test_editing_a_plugin_reruns_its_runs_and_no_others(plugin, tmp_path):
     path = tmp_path / "plug.yaml"
-    path.write_text(SWEEP.format(plugin=plugin.name))  # relative to the sweep file
+    path.write_text(SWEEP)
     uri = f"sqlite:///{tmp_path}/t.db"
-    first = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri, "--no-artifacts", cwd=tmp_path)
+    first = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri, "--no-artifacts",
+                    "--plugin", str(plugin), cwd=tmp_path)
     assert first.returncode == 0, first.stderr
     before = codes(uri)
     assert len(before) == 4 and {c.split("+")[0] for _, c in before.values()} == {code_identity()}
     plugin.write_text(plugin.read_text() + "\n# a comment: the code is the same\n")
+    path.write_text(f"plugins: [{plugin.name}]\n" + SWEEP)  # now named by the file, relative to it
     same = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri, "--no-artifacts", cwd=tmp_path)
     assert "nothing to run: all 4 runs are already tracked" in same.stdout, same.stdout
     plugin.write_text(plugin.read_text().replace("jitter * random_state", "0.5 * jitter * random_state"))

@@ -15,6 +15,11 @@ that path and are not part of it.
 
 The fingerprint is taken over each module's syntax tree with docstrings
 dropped, so comments, docstrings and formatting do not change it.
+
+A run of a plug-in's solver or dataset (:mod:`mpe3d.plugins`) carries the
+plug-in's identity too (:func:`run_code`): its name, its distribution's
+version and the same kind of fingerprint over its own source. Editing a
+plug-in changes the identity of its runs and of no other.
 """
 
 from __future__ import annotations
