@@ -42,9 +42,14 @@ def test_the_example_plugin_installs_keeps_the_contract_and_joins_every_table(tm
                            capture_output=True, text=True, timeout=600)
     assert build.returncode == 0, build.stderr
     python = _fresh_venv(tmp_path / "venv")
-    install = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--no-deps",
+    # --ignore-installed: the mpe3d that the .pth line shows (this environment's) is
+    # neither used nor touched; the venv gets its own
+    install = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--no-deps", "--ignore-installed",
                               *map(str, wheels.glob("*.whl"))], capture_output=True, text=True, timeout=600)
     assert install.returncode == 0, install.stderr
+    where = subprocess.run([str(python), "-c", "import mpe3d, mpe3d_smacof3; print(mpe3d.__file__)"],
+                           capture_output=True, text=True)
+    assert where.stdout.startswith(str(tmp_path / "venv")), where.stdout + where.stderr
     mpe3d = str(tmp_path / "venv" / "bin" / "mpe3d")
     env = {**os.environ, "PYTHONWARNINGS": "ignore"}
     env.pop("MLFLOW_TRACKING_URI", None)
