@@ -23,14 +23,13 @@ def test_keypoints_to_cloud_recovers_the_shape(tmp_path):
 def _fresh_venv(folder):
     """A new virtual environment that installs mpe3d and the example package
     itself; mpe3d's dependencies come from this interpreter's site-packages
-    (a .pth line: no download), never mpe3d itself."""
-    import sysconfig
-
+    (.pth lines: no download), never mpe3d itself."""
     subprocess.run([sys.executable, "-m", "venv", str(folder)], check=True, timeout=300)
     python = folder / "bin" / "python"
     site = subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
                           capture_output=True, text=True, check=True).stdout.strip()
-    (Path(site) / "outer_dependencies.pth").write_text(sysconfig.get_paths()["purelib"] + "\n")
+    outer = [p for p in sys.path if p.rstrip("/").endswith(("site-packages", "dist-packages")) and Path(p).is_dir()]
+    (Path(site) / "outer_dependencies.pth").write_text("\n".join(outer) + "\n")
     return python
 
 
