@@ -59,6 +59,7 @@ def test_the_example_plugin_installs_keeps_the_contract_and_joins_every_table(tm
     assert check.returncode == 0 and "smacof3: 9 of 9 checks pass" in check.stdout, check.stdout
     out = tmp_path / "report"
     paper = subprocess.run([mpe3d, "reproduce-paper", "--scale", "tiny", "--solver", "smacof3", "--quiet",
+                            "--no-artifacts",
                             "--tracking-uri", f"sqlite:///{tmp_path}/t.db", "--out", str(out)],
                            capture_output=True, text=True, env=env, timeout=900, cwd=tmp_path)
     assert paper.returncode == 0, paper.stderr

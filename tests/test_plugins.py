@@ -163,7 +163,7 @@ def codes(uri):
             for r in newest}
 
 
-@pytest.mark.slow  # three real sweeps with two workers: the full suite runs it
+@pytest.mark.slow  # three real sweeps (the first with two workers): the full suite runs it
 def test_editing_a_plugin_reruns_its_runs_and_no_others(plugin, tmp_path):
     path = tmp_path / "plug.yaml"
     path.write_text(SWEEP)
@@ -175,10 +175,10 @@ def test_editing_a_plugin_reruns_its_runs_and_no_others(plugin, tmp_path):
     assert len(before) == 4 and {c.split("+")[0] for _, c in before.values()} == {code_identity()}
     plugin.write_text(plugin.read_text() + "\n# a comment: the code is the same\n")
     path.write_text(f"plugins: [{plugin.name}]\n" + SWEEP)  # now named by the file, relative to it
-    same = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri, "--no-artifacts", cwd=tmp_path)
+    same = run_cli("sweep", str(path), "--jobs", "1", "--tracking-uri", uri, "--no-artifacts", cwd=tmp_path)
     assert "nothing to run: all 4 runs are already tracked" in same.stdout, same.stdout
     plugin.write_text(plugin.read_text().replace("jitter * random_state", "0.5 * jitter * random_state"))
-    again = run_cli("sweep", str(path), "--jobs", "2", "--tracking-uri", uri, "--no-artifacts", cwd=tmp_path)
+    again = run_cli("sweep", str(path), "--jobs", "1", "--tracking-uri", uri, "--no-artifacts", cwd=tmp_path)
     assert again.returncode == 0 and "2 finished, 0 failed, 2 skipped" in again.stdout, again.stdout
     after = codes(uri)
     for key, (run_id, code) in before.items():
