@@ -476,7 +476,7 @@ def cmd_reconstruct(args) -> int:
                       loss=args.loss, random_state=args.seed, objective=args.objective,
                       camera=args.camera, missing=args.missing,
                       outlier_threshold=args.outlier_threshold,
-                      principal_point=args.principal_point)
+                      principal_point=args.principal_point, start=args.start)
     check_ids_fit(out, problem.ids)
     result = solve_problem(problem)
     extra = {"input": str(args.input), "output": str(model or out)}
@@ -700,7 +700,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "distance matrices", description="Read matched 2D keypoints (CSV view,point,x,y; "
                          "NPZ; JSON; or a folder of .npz per view) or per-view distance matrices, check "
                          "them, and write the 3D cloud with each point's id.")
-    rec.add_argument("input", metavar="INPUT", help="a .csv, .npz or .json file, or a folder of .npz")
+    rec.add_argument("input", metavar="INPUT", help="a .csv, .npz or .json file, a folder of .npz, "
+                     "a COLMAP model folder, or a Bundler .out or BAL problem file")
     rec.add_argument("--out", required=True, metavar="CLOUD", help="output: .ply, .csv or .npy")
     rec.add_argument("--projections", metavar="FILE",
                      help="known cameras (.npy or .json, K matrices: 2x3 or 3x3 orthographic, "
@@ -708,9 +709,14 @@ def build_parser() -> argparse.ArgumentParser:
     rec.add_argument("--objective", choices=("reprojection", "stress"),
                      help="reprojection (bundle adjustment; the default for keypoints) or "
                      "stress (paper Eq. 1; the default and only choice for distance matrices)")
-    rec.add_argument("--camera", default="auto", choices=("auto", "orthographic", "scaled", "perspective"),
+    rec.add_argument("--camera", default="auto",
+                     choices=("auto", "orthographic", "scaled", "perspective", "radial"),
                      help="the camera model for reprojection (default auto: the pinhole camera "
-                     "when it fits clearly better than weak perspective)")
+                     "when it fits clearly better than weak perspective; radial: the pinhole "
+                     "with radial distortion k1, k2, Bundler's and BAL's camera)")
+    rec.add_argument("--start", choices=("file", "own"),
+                     help="where bundle adjustment starts: the input's cameras and points (a "
+                     "Bundler or BAL file; the default when it has them) or mpe3d's own start")
     rec.add_argument("--principal-point", type=_pair, metavar="X,Y",
                      help="the pinhole camera's principal point in pixels, usually the image "
                      "centre (default: the centre of the keypoints)")

@@ -9,7 +9,9 @@ view and row):
   ``dist``;
 * JSON ``{"views": [{"ids": [...], "xy": [[x, y], ...]} | {"ids": [...], "dist": [[...]]}]}``;
 * a COLMAP sparse model folder (``cameras``, ``images``, ``points3D``, binary
-  or text): its tracks as keypoints (:func:`mpe3d.harness.userdata.colmap_model.read_model`).
+  or text): its tracks as keypoints (:func:`mpe3d.harness.userdata.colmap_model.read_model`);
+* a Bundler ``.out`` or BAL problem file, known by content
+  (:mod:`mpe3d.harness.userdata.bundler`), with its cameras and points as a start.
 
 Known cameras (the fixed setting) come as a ``.npy`` or ``.json`` of K
 matrices: 2x3 with orthonormal rows or 3x3 rotations (orthographic), or 3x4
@@ -246,11 +248,16 @@ def read_views(path: str | Path) -> list[dict]:
         raise MpeError(f"{path}: not a regular file")
     readers = {".csv": _read_csv, ".npz": _read_npz, ".json": _read_json}
     reader = readers.get(path.suffix.lower())
-    if reader is None:
-        raise MpeError(f"{path}: unknown input format '{path.suffix}' (expected .csv, .npz, "
-                       ".json, or a folder of .npz files)")
     if path.stat().st_size == 0:
         raise MpeError(f"{path}: empty file")
+    if reader is None:
+        from mpe3d.harness.userdata.bundler import read_bundle_file, sniff
+
+        if sniff(path) is None:  # Bundler and BAL files are known by content, any name
+            raise MpeError(f"{path}: unknown input format '{path.suffix}' (expected .csv, .npz, "
+                           ".json, a folder of .npz files, a COLMAP model folder, a Bundler "
+                           ".out or a BAL problem file)")
+        return read_bundle_file(path)
     return reader(path)
 
 

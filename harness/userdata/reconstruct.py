@@ -31,12 +31,13 @@ from mpe3d.solvers.degenerate import check_geometry, collect_notes
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.adjust import REPROJECTION_LOSSES
 from mpe3d.solvers.sfm.bundle import FAR_FACTOR, MIN_RAY_ANGLE
-from mpe3d.solvers.sfm.cameras import CAMERAS
+from mpe3d.solvers.sfm.cameras import CAMERAS, radial_cameras
 from mpe3d.solvers.stress import STRESS_LOSSES
 
 SOLVERS = ("refine", "factorize", "sgd")
 OBJECTIVES = ("reprojection", "stress")
 CAMERA_CHOICES = ("auto",) + CAMERAS
+START_CHOICES = (None, "file", "own")
 LIKELY_MISSING = ((-1.0, -1.0), (0.0, 0.0))  # what OpenCV and VGG files write for "not seen"
 SYMMETRY_TOL = 1e-6  # relative: distance matrices written as text lose a little
 
@@ -54,13 +55,15 @@ class ViewCamera:
     translation: np.ndarray | None = None  # (3,) pinhole
     scale: float | None = None
     translation_px: np.ndarray | None = None  # (2,) affine
+    k1: float | None = None  # radial distortion (the radial camera)
+    k2: float | None = None
 
     @classmethod
     def from_numbers(cls, view: str, numbers: dict) -> "ViewCamera":
         """From :meth:`mpe3d.solvers.sfm.cameras.Cameras.matrices`' plain numbers."""
         arrays = {k: np.asarray(v, dtype=float) for k, v in numbers.items()
                   if k in ("P", "rotation", "translation", "translation_px")}
-        plain = {k: float(v) for k, v in numbers.items() if k in ("focal_px", "scale")}
+        plain = {k: float(v) for k, v in numbers.items() if k in ("focal_px", "scale", "k1", "k2")}
         return cls(view, **arrays, **plain)
 
     def numbers(self) -> dict[str, Any]:
@@ -68,7 +71,8 @@ class ViewCamera:
         if self.rotation is None:
             return {"P": self.P.tolist()}
         if self.focal_px is not None:
-            return {"focal_px": self.focal_px, "rotation": self.rotation.tolist(),
+            distortion = {} if self.k1 is None else {"k1": self.k1, "k2": self.k2}
+            return {"focal_px": self.focal_px, **distortion, "rotation": self.rotation.tolist(),
                     "translation": self.translation.tolist(), "P": self.P.tolist()}
         return {"scale": self.scale, "rotation": self.rotation.tolist(),
                 "translation_px": self.translation_px.tolist(), "P": self.P.tolist()}
@@ -115,7 +119,9 @@ def drop_missing(views: Sequence[dict], missing=None, source: str = "input"):
             continue
         if missing is not None:
             keep = ~np.all(xy == np.asarray(missing, dtype=float), axis=1)
-            out.append({**view, "ids": np.asarray(view["ids"])[keep], "xy": xy[keep]})
+            kept = {key: np.asarray(view[key])[keep] for key in ("ids", "xy", "start_points")
+                    if key in view}
+            out.append({**view, **kept})
             continue
         out.append(view)
         for mark in LIKELY_MISSING:
@@ -232,6 +238,7 @@ class Problem:
     principal_point: tuple | None = None
     view_names: list = field(default_factory=list)
     notes: list = field(default_factory=list)
+    start: tuple | None = None  # (X, Cameras) from the file (Bundler, BAL), or None: ours
 
 
 def _check_random_state(random_state) -> None:
@@ -267,9 +274,13 @@ def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
 def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
             loss: str = "l2", random_state=0, objective: str | None = None,
             camera: str = "auto", missing=None,
-            outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None) -> Problem:
+            outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None,
+            start: str | None = None) -> Problem:
     """Read and check every input of :func:`reconstruct` without solving anything."""
     _check_choices(solver, loss, objective, camera, outlier_threshold, missing)
+    if start not in START_CHOICES:
+        raise MpeError(f"start: '{start}' is not one of file, own (or None: the file's when "
+                       "it has one)")
     _check_pair(principal_point, "principal_point")
     _check_random_state(random_state)
     source = str(views) if isinstance(views, (str, Path)) else "views"
@@ -305,8 +316,39 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
     if pinhole and len(projections) != obs.n_views:
         raise MpeError(f"{projections_source}: {len(projections)} matrices for {obs.n_views} views")
     names = [str(view.get("name", k)) for k, view in enumerate(views)]
+    file_start = _file_start(views, obs, source, start, objective, camera, projections,
+                             principal_point)
     return Problem(obs, ids, solver, loss, random_state, objective, camera, projections,
-                   float(outlier_threshold), principal_point, names, notes)
+                   float(outlier_threshold), principal_point, names, notes, file_start)
+
+
+def _file_start(views, obs, source, start, objective, camera, projections, principal_point):
+    """(X, radial cameras) from a Bundler or BAL file's values, when it has them
+    and ``start`` does not say "own"."""
+    has = all("start_camera" in view for view in views)
+    if start == "file" and not has:
+        raise MpeError(f"{source}: start='file' needs cameras and points in the input "
+                       "(a Bundler .out or BAL file); this one has none")
+    if start == "own" or not has:
+        return None
+    for flag, value, wanted in (("objective", objective, "reprojection"),
+                                ("camera", camera, "radial")):
+        if value != wanted and not (flag == "camera" and value == "auto"):
+            raise MpeError(f"{source}: the file's cameras are a start for camera='radial' and "
+                           f"the reprojection objective, not {flag}='{value}'; start='own' "
+                           "solves from mpe3d's own start")
+    if projections is not None or principal_point is not None:
+        raise MpeError(f"{source}: the file gives the cameras (principal point at the image "
+                       "centre); start='own' to give projections or a principal point")
+    X = np.zeros((obs.n_points, 3))
+    for view, seen in zip(views, obs.views):
+        X[seen.ids] = view["start_points"]
+    cams = [view["start_camera"] for view in views]
+    cameras = radial_cameras(np.stack([c["rotation"] for c in cams]),
+                             np.stack([c["translation"] for c in cams]),
+                             np.array([c["focal"] for c in cams]),
+                             np.stack([c["distortion"] for c in cams]))
+    return X, cameras
 
 
 def solve_problem(problem: Problem) -> Result:
@@ -332,6 +374,9 @@ def _solve_reprojection(problem: Problem, tracks):
     if problem.cameras is not None:
         return bundle.known_cameras(tracks, problem.cameras, loss=problem.loss,
                                     outlier_threshold=problem.outlier_threshold)
+    if problem.start is not None:
+        return bundle.from_start(tracks, *problem.start, loss=problem.loss,
+                                 outlier_threshold=problem.outlier_threshold)
     return bundle.bundle_adjust(tracks, problem.camera, loss=problem.loss,
                                 outlier_threshold=problem.outlier_threshold,
                                 principal_point=problem.principal_point)
@@ -350,7 +395,8 @@ def stop_notes(fit) -> list[str]:
 def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
                 loss: str = "l2", random_state=0, objective: str | None = None,
                 camera: str = "auto", missing=None,
-                outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None) -> Result:
+                outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None,
+                start: str | None = None) -> Result:
     """Rebuild a 3D cloud from user views.
 
     Parameters
@@ -369,10 +415,11 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     objective : {None, "reprojection", "stress"}, default None
         None: the reprojection error for coordinates (bundle adjustment), the
         3DMPE stress (paper Eq. 1) for distance matrices.
-    camera : {"auto", "orthographic", "scaled", "perspective"}, default "auto"
+    camera : {"auto", "orthographic", "scaled", "perspective", "radial"}, default "auto"
         The camera model of the reprojection objective; "auto" fits the scaled
         (weak-perspective) and the pinhole camera and keeps the pinhole when it
-        explains the keypoints clearly better.
+        explains the keypoints clearly better. "radial" adds radial distortion
+        k1, k2 (one lens for all views), estimated from the pinhole's fit.
     missing : None or (x, y), default None
         Observations at exactly (x, y) are markers for "not seen" and dropped.
     outlier_threshold : float, default 20
@@ -381,9 +428,13 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     principal_point : None or (x, y), default None
         The pinhole camera's principal point in pixels (the image centre);
         None takes the centre of the keypoints' bounding box.
+    start : {None, "file", "own"}, default None
+        Where bundle adjustment starts: "file" from the cameras (f, k1, k2 per
+        view) and points of a Bundler or BAL input, "own" from mpe3d's start;
+        None: the file's when it has them.
     """
     return solve_problem(prepare(views, projections, solver, loss, random_state, objective, camera,
-                         missing, outlier_threshold, principal_point))
+                         missing, outlier_threshold, principal_point, start))
 
 
 def _stress_result(problem: Problem, rec, runtime: float, warnings: list[str]) -> Result:

@@ -34,6 +34,10 @@ REPROJECTION_LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 
 
 _DENSE_Y = 4_000_000  # entries of the Schur factor Y below which it is made dense
+# A sparse product costs this many times a dense BLAS one per multiply-add
+# (measured: 50 radial cameras, 8000 points in half the views each: Y^T Y took
+# 3.6 s sparse, 0.2 s dense by row blocks)
+_SPARSE_COST = 30
 
 
 def one_blas_thread(func):
@@ -193,7 +197,20 @@ def _schur_term(U_damped, W, structure, point):
     if Y.shape[0] * Y.shape[1] <= _DENSE_Y:  # few points: BLAS on the dense Y is faster
         Y = Y.toarray()
         return Y.T @ Y
+    pairs = float(np.sum(np.diff(Y.indptr).astype(float) ** 2))  # the sparse product's work
+    if _SPARSE_COST * pairs > float(Y.shape[0]) * Y.shape[1] ** 2:
+        return _dense_by_blocks(Y)  # points seen by many of the cameras: BLAS wins
     return (Y.T @ Y).toarray()
+
+
+def _dense_by_blocks(Y) -> np.ndarray:
+    """Y^T Y for a sparse Y, densely, a block of rows at a time (bounded memory)."""
+    rows = max(1, _DENSE_Y // Y.shape[1])
+    out = np.zeros((Y.shape[1], Y.shape[1]))
+    for start in range(0, Y.shape[0], rows):
+        block = Y[start:start + rows].toarray()
+        out += block.T @ block
+    return out
 
 
 def _damped_step(U, V, W, g_x, g_c, lam, structure, point):

@@ -51,7 +51,8 @@ from mpe3d.solvers.factorize import affine_als, metric_upgrade_pd
 from mpe3d.solvers.linalg import elongation, sum_by
 from mpe3d.solvers.sfm import incremental
 from mpe3d.solvers.sfm.adjust import REPROJECTION_LOSSES, adjust, one_blas_thread
-from mpe3d.solvers.sfm.cameras import CAMERAS, MATRIX, Cameras, affine_cameras, known_matrices
+from mpe3d.solvers.sfm.cameras import (CAMERAS, MATRIX, PINHOLES, Cameras, affine_cameras,
+                                       known_matrices, with_distortion)
 from mpe3d.solvers.sfm.epipolar import epipolar_outliers
 from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, residual_lengths, rms, robust_sigma
 from mpe3d.solvers.sfm.triangulation import dlt_rows, least_squares_points, ray_directions, robust_points, widest_angles
@@ -153,14 +154,16 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     ----------
     tracks : Tracks
         The observations, in pixels.
-    camera : {"auto", "orthographic", "scaled", "perspective"}, default "auto"
+    camera : {"auto", "orthographic", "scaled", "perspective", "radial"}, default "auto"
         "auto" fits ``scaled`` and ``perspective`` and keeps the pinhole camera
         when it explains the keypoints clearly better (median residual below
-        ``AUTO_RATIO`` times the weak perspective's).
+        ``AUTO_RATIO`` times the weak perspective's). "radial" is the pinhole
+        with radial distortion k1, k2, fitted from the pinhole's solution.
     principal_point : (2,) or None, default None
-        Perspective only; None takes the centre of the keypoints' bounding box.
+        Pinholes only; None takes the centre of the keypoints' bounding box.
     shared_focal : bool, default True
-        Perspective only: one focal length for all views, or one per view.
+        Pinholes only: one focal length (and for radial one k1, k2: one lens)
+        for all views, or one per view.
     loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
         rho of the squared residual length, with ``loss_scale`` in pixels.
     outlier_threshold : float, default OUTLIER_THRESHOLD
@@ -193,11 +196,14 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
         camera = "scaled"
     wanted = ("scaled", "perspective") if camera == "auto" else (camera,)
     others = {"orthographic": ("scaled", "perspective"), "scaled": ("perspective",),
-              "perspective": ("scaled",)}
-    for model in dict.fromkeys(wanted + ((), others.get(camera, ()))[not exact]):  # + checks
+              "perspective": ("scaled",), "radial": ("scaled",)}
+    # the radial camera starts from the pinhole's fit, so that one comes first
+    needed = ("perspective",) if camera == "radial" else ()
+    for model in dict.fromkeys(needed + wanted + ((), others.get(camera, ()))[not exact]):
         if model not in fits:
-            fits[model] = (_orthographic if model == "orthographic" else _perspective)(
-                *fit[:2], tracks.subset(used), principal_point, shared_focal, lm_options)
+            fits[model] = _FITTERS[model](*(fits["perspective"] if model == "radial" else fit)[:2],
+                                          tracks.subset(used), principal_point, shared_focal,
+                                          lm_options)
     rms = {model: _rms_of(f, tracks, used) for model, f in fits.items()}
     # the models are judged by their median residual, which wrong matches do not sway
     median = {model: _median_of(f, tracks, used) for model, f in fits.items()}
@@ -297,7 +303,7 @@ def _say_if_depth_is_free(X, placed, weak, camera) -> None:
         return
     warn(f"the views do not determine the cloud's depth under the {camera} camera ({why}): "
          "their baseline is too small for it"
-         + ("" if camera == "perspective" else "; try camera='perspective'"))
+         + ("" if camera in PINHOLES else "; try camera='perspective'"))
 
 
 @one_blas_thread
@@ -335,6 +341,27 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
                                      outlier_threshold, {**lm_options, "frozen": frozen})
     return _result(fit, tracks, dropped, cameras.model if cameras.model == MATRIX
                    else "orthographic", max_iter, float("nan"), {}, {**lm_options, "frozen": frozen})
+
+
+@one_blas_thread
+def from_start(tracks: Tracks, X: np.ndarray, cameras: Cameras, *, loss: str = "l2",
+               loss_scale: float = 1.0, outlier_threshold: float = OUTLIER_THRESHOLD,
+               max_iter: int = 100, tol: float = 1e-10) -> BundleResult:
+    """Bundle adjustment from given points and cameras (a Bundler or BAL
+    file's): every parameter free, wrong matches dropped as in
+    :func:`bundle_adjust`, no start of ours tried."""
+    if loss not in REPROJECTION_LOSSES:
+        raise MpeError(f"loss: expected one of {', '.join(REPROJECTION_LOSSES)}, got {loss!r}")
+    lm_options = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
+    used = _informative(tracks, np.ones(len(tracks.view), dtype=bool))
+    if not np.all(np.isfinite(cameras.project(X, tracks.view[used], tracks.point[used]))):
+        raise MpeError("the start puts points behind the cameras that see them: not a start "
+                       "for these observations (try start='own')")
+    fit = adjust(np.asarray(X, dtype=float), cameras, tracks.subset(used), **lm_options)
+    fit, dropped = _without_outliers(fit, tracks, np.zeros(len(used), dtype=bool),
+                                     outlier_threshold, lm_options)
+    fit, dropped = _readmitted(fit, tracks, dropped, outlier_threshold, lm_options)
+    return _result(fit, tracks, dropped, cameras.model, max_iter, float("nan"), {}, lm_options)
 
 
 def _scaled(tracks, lm_options, grown=None):
@@ -526,6 +553,15 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, lm_o
                                      principal_point=c, shared_focal=shared_focal)
             starts.append(((in_front(mirror * X, cameras, tracks), cameras), None))
     return _best_of(starts, tracks, lm_options)[0]
+
+
+def _radial(X, pinhole: Cameras, tracks, principal_point, shared_focal, lm_options):
+    """From the pinhole's solution, with k1 = k2 = 0: a lens's distortion is a
+    small change of a pinhole's images, so its optimum is near."""
+    return adjust(X, with_distortion(pinhole), tracks, **lm_options)
+
+
+_FITTERS = {"orthographic": _orthographic, "perspective": _perspective, "radial": _radial}
 
 
 def in_front(X: np.ndarray, cameras: Cameras, tracks: Tracks, keep: float = 0.5) -> np.ndarray:

@@ -8,7 +8,11 @@ Three models, from the paper's to a real camera's:
   since real views differ in zoom and distance;
 * ``perspective`` (pinhole): u = f (R x + T)[:2] / (R x + T)[2] + c, with a
   3D translation per view, the focal length f per view or shared, and the
-  principal point c fixed (given, or the centre of the keypoints).
+  principal point c fixed (given, or the centre of the keypoints);
+* ``radial`` (the Bundler/BAL camera): the pinhole with radial distortion,
+  u = f d(n) n + c with n = (R x + T)[:2] / (R x + T)[2] and
+  d(n) = 1 + k1 |n|^2 + k2 |n|^4; f, k1 and k2 per view (as Bundler and BAL
+  files carry them) or shared by all views (one lens).
 
 Rotations are R = R0 Exp([w]), with w the parameter and R0 the last
 anchor, so that no parametrisation singularity is ever near: the Jacobian
@@ -23,7 +27,8 @@ import numpy as np
 
 from mpe3d.solvers.linalg import matvec_by_group
 
-CAMERAS = ("orthographic", "scaled", "perspective")
+CAMERAS = ("orthographic", "scaled", "perspective", "radial")
+PINHOLES = ("perspective", "radial")  # 3D translation, depth, a focal length
 # The affine camera u = A x + t (A any 2x3) is no camera model a user picks: it is
 # the start, and the floor that no metric model's error can go below.
 AFFINE = "affine"
@@ -74,16 +79,17 @@ def complete_rotation(P: np.ndarray) -> np.ndarray:
 class Cameras:
     """K cameras of one model, as their anchor rotations and their parameters.
 
-    ``params`` per view: ``w`` (3) then ``t`` (2; 3 for perspective), then
-    ``log s`` for scaled and ``log f`` for perspective with per-view focal
-    lengths; a shared focal length is the one global parameter.
+    ``params`` per view: ``w`` (3) then ``t`` (2; 3 for the pinholes), then
+    ``log s`` for scaled, ``log f`` for perspective with per-view focal
+    lengths and ``log f, k1, k2`` for radial with per-view intrinsics. Shared
+    intrinsics are the global parameters: ``[log f]`` or ``[log f, k1, k2]``.
     """
 
     model: str
     rotations: np.ndarray  # (K, 3, 3) anchors R0; (K, 3, 4) camera matrices for MATRIX
     params: np.ndarray  # (K, per_view)
-    shared: np.ndarray  # (0,) or (1,) = [log f]
-    principal_point: np.ndarray  # (2,), perspective only
+    shared: np.ndarray  # (0,), (1,) = [log f] or (3,) = [log f, k1, k2]
+    principal_point: np.ndarray  # (2,), pinholes only
 
     @property
     def per_view(self) -> int:
@@ -110,11 +116,20 @@ class Cameras:
         return self.rotations @ exp_so3(self.params[:, :3])
 
     def focal(self) -> np.ndarray:
-        """f per view (perspective)."""
+        """f per view (pinholes)."""
         K = len(self.rotations)
         if self.shared.size:
             return np.full(K, np.exp(self.shared[0]))
         return np.exp(self.params[:, 6])
+
+    def distortion(self) -> np.ndarray:
+        """(K, 2): k1, k2 per view (radial; zero for the other models)."""
+        K = len(self.rotations)
+        if self.model != "radial":
+            return np.zeros((K, 2))
+        if self.shared.size:
+            return np.broadcast_to(self.shared[1:3], (K, 2)).copy()
+        return self.params[:, 7:9].copy()
 
     def scale(self) -> np.ndarray:
         """The image scale per view: s (scaled), 1 (orthographic), f / depth of
@@ -135,12 +150,17 @@ class Cameras:
             return p[:, :2] / p[:, 2:3]  # a matrix's overall sign is the user's: no cheirality
         R = self.current_rotations()
         q = matvec_by_group(R, view, X[point])
-        if self.model != "perspective":
+        if self.model not in PINHOLES:
             s = self.scale()[view, None]
             return s * q[:, :2] + self.params[view, 3:5]
         p = q + self.params[view, 3:6]
         depth = np.where(p[:, 2:3] > 0, p[:, 2:3], np.nan)  # behind the camera: no image
-        return self.focal()[view, None] * p[:, :2] / depth + self.principal_point
+        n = p[:, :2] / depth
+        if self.model == "radial":
+            k = self.distortion()[view]
+            r2 = np.sum(n ** 2, axis=1, keepdims=True)
+            n = n * (1 + k[:, :1] * r2 + k[:, 1:] * r2 ** 2)
+        return self.focal()[view, None] * n + self.principal_point
 
     def jacobian_blocks(self, X, view, point):
         """du_t/dx_i (T, 2, 3) and du_t/d(view parameters) (T, 2, per_view),
@@ -163,7 +183,7 @@ class Cameras:
         dq_dw = -R @ hat(x) @ right_jacobian(self.params[:, :3])[view]
         d_view = np.zeros((T, 2, self.per_view))
         d_shared = np.zeros((T, 2, self.shared.size))
-        if self.model != "perspective":
+        if self.model not in PINHOLES:
             s = self.scale()[view, None, None]
             d_x = s * R[:, :2]
             d_view[:, :, :3] = s * dq_dw[:, :2]
@@ -173,18 +193,38 @@ class Cameras:
             return d_x, d_view, d_shared
         p = q + self.params[view, 3:6]
         f = self.focal()[view]
-        du_dp = np.zeros((T, 2, 3))
-        du_dp[:, 0, 0] = du_dp[:, 1, 1] = f / p[:, 2]
-        du_dp[:, :, 2] = -f[:, None] * p[:, :2] / p[:, 2:3] ** 2
+        n = p[:, :2] / p[:, 2:3]
+        dn_dp = np.zeros((T, 2, 3))
+        dn_dp[:, 0, 0] = dn_dp[:, 1, 1] = 1 / p[:, 2]
+        dn_dp[:, :, 2] = -n / p[:, 2:3]
+        intrinsic = self._intrinsic_blocks(n, f, view)
+        du_dp = intrinsic[0] @ dn_dp
         d_x = du_dp @ R
         d_view[:, :, :3] = du_dp @ dq_dw
         d_view[:, :, 3:6] = du_dp
-        d_f = f[:, None] * p[:, :2] / p[:, 2:3]  # du/dlog f
         if self.shared.size:
-            d_shared[:, :, 0] = d_f
+            d_shared[:] = intrinsic[1]
         else:
-            d_view[:, :, 6] = d_f
+            d_view[:, :, 6:] = intrinsic[1]
         return d_x, d_view, d_shared
+
+    def _intrinsic_blocks(self, n, f, view):
+        """du/dn (T, 2, 2) and du/d(log f[, k1, k2]) (T, 2, 1 or 3) at the
+        normalised image points n."""
+        T = len(n)
+        if self.model != "radial":
+            return f[:, None, None] * np.eye(2), (f[:, None] * n)[:, :, None]
+        k = self.distortion()[view]
+        r2 = np.sum(n ** 2, axis=1)
+        d = 1 + k[:, 0] * r2 + k[:, 1] * r2 ** 2
+        dd_dn = ((2 * k[:, 0] + 4 * k[:, 1] * r2)[:, None] * n)  # (T, 2)
+        du_dn = f[:, None, None] * (d[:, None, None] * np.eye(2) + n[:, :, None] * dd_dn[:, None, :])
+        fn = f[:, None] * n
+        d_intrinsic = np.empty((T, 2, 3))
+        d_intrinsic[:, :, 0] = d[:, None] * fn
+        d_intrinsic[:, :, 1] = r2[:, None] * fn
+        d_intrinsic[:, :, 2] = (r2 ** 2)[:, None] * fn
+        return du_dn, d_intrinsic
 
     def projection_matrices(self) -> np.ndarray:
         """(K, 3, 4): u ~ P [x; 1], with last row (0, 0, 0, 1) for the affine models."""
@@ -198,7 +238,7 @@ class Cameras:
             P[:, :2, 3] = self.params[:, 6:8]
             return P
         R = self.current_rotations()
-        if self.model == "perspective":
+        if self.model in PINHOLES:  # radial: the pinhole without its distortion
             intrinsics = np.zeros((K, 3, 3))
             intrinsics[:, 0, 0] = intrinsics[:, 1, 1] = self.focal()
             intrinsics[:, :2, 2], intrinsics[:, 2, 2] = self.principal_point, 1.0
@@ -214,9 +254,11 @@ class Cameras:
         R, P = self.current_rotations(), self.projection_matrices()
         out = []
         for k in range(len(R)):
-            if self.model == "perspective":
+            if self.model in PINHOLES:
                 out.append({"focal_px": float(self.focal()[k]), "rotation": R[k].tolist(),
                             "translation": self.params[k, 3:6].tolist(), "P": P[k].tolist()})
+                if self.model == "radial":
+                    out[-1]["k1"], out[-1]["k2"] = (float(v) for v in self.distortion()[k])
             else:
                 out.append({"scale": float(self.scale()[k]), "rotation": R[k].tolist(),
                             "translation_px": self.params[k, 3:5].tolist(),
@@ -252,3 +294,31 @@ def affine_cameras(model: str, P: np.ndarray, scale: np.ndarray, t: np.ndarray,
         return Cameras(model, R0, params, np.array([np.log(focal)]), c)
     params = np.concatenate([np.zeros((K, 3)), T, np.full((K, 1), np.log(focal))], axis=1)
     return Cameras(model, R0, params, np.zeros(0), c)
+
+
+def radial_cameras(rotations: np.ndarray, translations: np.ndarray, focal: np.ndarray,
+                   distortion: np.ndarray, principal_point=(0.0, 0.0),
+                   shared: bool = False) -> Cameras:
+    """Radial (Bundler/BAL) cameras from rotations (K, 3, 3), translations
+    (K, 3), focal lengths (K,) and k1, k2 (K, 2); ``shared`` keeps one focal
+    length and one k1, k2 (view 0's) for all views."""
+    K = len(rotations)
+    focal = np.broadcast_to(np.asarray(focal, dtype=float), (K,))
+    distortion = np.broadcast_to(np.asarray(distortion, dtype=float), (K, 2))
+    pose = np.concatenate([np.zeros((K, 3)), np.asarray(translations, dtype=float)], axis=1)
+    c = np.asarray(principal_point, dtype=float)
+    if shared:
+        return Cameras("radial", np.asarray(rotations, dtype=float), pose,
+                       np.array([np.log(focal[0]), *distortion[0]]), c)
+    params = np.concatenate([pose, np.log(focal)[:, None], distortion], axis=1)
+    return Cameras("radial", np.asarray(rotations, dtype=float), params, np.zeros(0), c)
+
+
+def with_distortion(cameras: Cameras) -> Cameras:
+    """Perspective cameras as radial ones with k1 = k2 = 0 (the start of a
+    distortion fit); intrinsics stay shared when the focal length is."""
+    if cameras.model != "perspective":
+        raise ValueError(f"expected perspective cameras, got {cameras.model}")
+    cam = cameras.reanchored()
+    return radial_cameras(cam.rotations, cam.params[:, 3:6], cam.focal(),
+                          np.zeros(2), cam.principal_point, shared=bool(cam.shared.size))

@@ -7,7 +7,8 @@ from scipy.sparse import csr_matrix
 from mpe3d.errors import MpeError
 from mpe3d.solvers.degenerate import DegenerateWarning
 from mpe3d.solvers.sfm import bundle
-from mpe3d.solvers.sfm.cameras import AFFINE, Cameras, affine_cameras, exp_so3
+from mpe3d.solvers.sfm.cameras import (AFFINE, Cameras, affine_cameras, exp_so3, radial_cameras,
+                                       with_distortion)
 from tests.helpers import SHARED
 
 N, K = 60, 6
@@ -41,16 +42,22 @@ def _similarity_error(X, truth):
 
 
 @pytest.mark.parametrize("model", ["affine", "orthographic", "scaled", "perspective",
-                                   "perspective-per-view"])
+                                   "perspective-per-view", "radial", "radial-per-view"])
 def test_analytic_jacobians_match_finite_differences(model, rng):
     if model == "affine":
         cameras = Cameras(AFFINE, np.broadcast_to(np.eye(3), (K, 3, 3)),
                           rng.standard_normal((K, 8)), np.zeros(0), np.zeros(2))
     else:
         R = exp_so3(rng.standard_normal((K, 3)))
-        cameras = affine_cameras(model.split("-")[0], R[:, :2], np.exp(rng.standard_normal(K) / 5),
-                                 rng.standard_normal((K, 2)), focal=5.0, principal_point=[0.1, 0.2],
-                                 shared_focal=model == "perspective")
+        pinhole = model.startswith(("perspective", "radial"))
+        cameras = affine_cameras("perspective" if pinhole else model, R[:, :2],
+                                 np.exp(rng.standard_normal(K) / 5), rng.standard_normal((K, 2)),
+                                 focal=5.0, principal_point=[0.1, 0.2],
+                                 shared_focal=model in ("perspective", "radial"))
+        if model.startswith("radial"):
+            cameras = with_distortion(cameras)
+            k = cameras.shared[1:] if cameras.shared.size else cameras.params[:, 7:]
+            k[...] = 0.1 * rng.standard_normal(k.shape)
         cameras.params[:, :3] = 0.3 * rng.standard_normal((K, 3))  # away from the anchor
     X = rng.standard_normal((N, 3))
     view, point = np.repeat(np.arange(K), N), np.tile(np.arange(N), K)
@@ -249,3 +256,40 @@ def test_a_start_point_behind_a_pinhole_is_pulled_in_front_and_the_rest_left_alo
     unchanged = np.ones(len(X), dtype=bool)
     unchanged[5] = False
     assert np.array_equal(moved[unchanged], X[unchanged]) and not np.allclose(moved[5], X[5])
+
+
+def _distorted_scene(k1, rng, noise=0.5):
+    """400 points seen by 5 pinholes of focal 1500 px round 1 rad, with a lens of
+    k1 (k2 = 0): the 5-photo set of issue 30, made synthetic."""
+    X = rng.uniform(-1, 1, (400, 3)) * [1.0, 0.7, 0.5]
+    R = exp_so3(np.c_[0.1 * rng.standard_normal(5), np.linspace(-0.5, 0.5, 5),
+                      0.05 * rng.standard_normal(5)])
+    cameras = radial_cameras(R, np.c_[np.zeros((5, 2)), np.full(5, 4.0)], 1500.0, [k1, 0.0],
+                             (640.0, 480.0))
+    view, point = np.repeat(np.arange(5), 400), np.tile(np.arange(400), 5)
+    z = cameras.project(X, view, point) + noise * rng.standard_normal((2000, 2))
+    return X, bundle.Tracks(view, point, z, 400, 5)
+
+
+def _median_similarity_error(X, truth):
+    a, b = X - X.mean(0), truth - truth.mean(0)
+    U, S, Vt = np.linalg.svd(a.T @ b)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    fitted = (np.sum(S * np.diag(D)) / np.sum(a ** 2)) * a @ (U @ D @ Vt)
+    return float(np.median(np.linalg.norm(fitted - b, axis=1)))
+
+
+def test_the_radial_camera_estimates_a_lens_distortion_the_pinhole_absorbs(rng):
+    """Keypoints with k1 = -0.12: the pinhole's cloud bends; the radial camera,
+    estimating k1 and k2, comes within 1.2x of the undistorted error."""
+    seed = int(rng.integers(1 << 30))
+    truth, clean = _distorted_scene(0.0, np.random.default_rng(seed))
+    _, distorted = _distorted_scene(-0.12, np.random.default_rng(seed))
+    undistorted = _median_similarity_error(
+        bundle.bundle_adjust(clean, "perspective", principal_point=(640, 480)).points, truth)
+    pinhole = bundle.bundle_adjust(distorted, "perspective", principal_point=(640, 480))
+    radial = bundle.bundle_adjust(distorted, "radial", principal_point=(640, 480))
+    assert radial.camera == "radial" and radial.converged
+    assert _median_similarity_error(radial.points, truth) <= 1.2 * undistorted
+    assert _median_similarity_error(pinhole.points, truth) > 1.3 * undistorted
+    assert radial.cameras.distortion()[0, 0] == pytest.approx(-0.12, abs=0.05)
