@@ -51,8 +51,15 @@ from mpe3d.solvers.factorize import affine_als, metric_upgrade_pd
 from mpe3d.solvers.linalg import elongation, sum_by
 from mpe3d.solvers.sfm import incremental
 from mpe3d.solvers.sfm.adjust import REPROJECTION_LOSSES, adjust, one_blas_thread
-from mpe3d.solvers.sfm.cameras import (CAMERAS, MATRIX, PINHOLES, Cameras, affine_cameras,
-                                       known_matrices, with_distortion)
+from mpe3d.solvers.sfm.cameras import (
+    CAMERAS,
+    MATRIX,
+    PINHOLES,
+    Cameras,
+    affine_cameras,
+    known_matrices,
+    with_distortion,
+)
 from mpe3d.solvers.sfm.epipolar import epipolar_outliers
 from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, residual_lengths, rms, robust_sigma
 from mpe3d.solvers.sfm.triangulation import dlt_rows, least_squares_points, ray_directions, robust_points, widest_angles

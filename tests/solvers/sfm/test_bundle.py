@@ -7,8 +7,7 @@ from scipy.sparse import csr_matrix
 from mpe3d.errors import MpeError
 from mpe3d.solvers.degenerate import DegenerateWarning
 from mpe3d.solvers.sfm import bundle
-from mpe3d.solvers.sfm.cameras import (AFFINE, Cameras, affine_cameras, exp_so3, radial_cameras,
-                                       with_distortion)
+from mpe3d.solvers.sfm.cameras import AFFINE, Cameras, affine_cameras, exp_so3, radial_cameras, with_distortion
 from tests.helpers import SHARED
 
 N, K = 60, 6
