@@ -20,7 +20,15 @@ SETTING_LABELS = {"fixed": "F", "variable": "V"}
 # as the authors' public code computes them (../shared/reference/README.md).
 CD, EMD, ROA = "cd_x100", "emd_x100", "roa"
 METRIC_LABELS = {CD: "CD (×100, mean NN distance)", EMD: "EMD (×100, mean distance)",
-                 ROA: "ROA (RMS after rigid alignment)", "runtime_s": "runtime (s)"}
+                 ROA: "ROA (RMS after rigid alignment)", "runtime_s": "runtime (s)",
+                 # real tracks (pipeline=tracks)
+                 "rms_px_clean": "reprojection RMS, clean observations (px)",
+                 "rms_px_all": "reprojection RMS, all observations (px)",
+                 "rms_px": "reprojection RMS, kept observations (px)",
+                 "error_3d_clean_median_pct": "3D error, untouched points (median, % of diagonal)",
+                 "error_3d_median_pct": "3D error (median, % of diagonal)",
+                 "centre_error_pct": "camera-centre error (median, % of diagonal)",
+                 "converged": "converged (share)"}
 
 
 def method_label(solver: str, variant=None) -> str:
@@ -52,6 +60,11 @@ def runs(tracker, experiment: str, hashes=None) -> pd.DataFrame:
     variants = frame["solver.method"] if "solver.method" in frame else [None] * len(frame)
     frame["method"] = [method_label(s, v) for s, v in zip(frame["solver.name"], variants)]
     frame.loc[frame["pipeline"] == "colmap", "method"] = "COLMAP"  # the photos' pipeline: no solver
+    tracks = frame["pipeline"] == "tracks"
+    if tracks.any():  # real keypoints: bundle adjustment by camera model, or a stress solver
+        from mpe3d.harness.experiment.tracks_pipeline import method
+
+        frame.loc[tracks, "method"] = [method(row) for _, row in frame[tracks].iterrows()]
     return frame.reset_index(drop=True)
 
 

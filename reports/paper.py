@@ -15,7 +15,7 @@ from typing import Callable
 import pandas as pd
 
 from mpe3d.harness.tracking.identity import code_identity, is_current
-from mpe3d.reports import figures, tables
+from mpe3d.reports import figures, tables, tracks
 from mpe3d.reports.claims import claim_lines, claims_table
 from mpe3d.reports.document import Report
 from mpe3d.reports.load import CD, EMD, METRIC_LABELS, ROA, finished, published, varying_columns
@@ -278,6 +278,8 @@ def render_section(report: Report, section: Section) -> None:
         report.text("No finished runs yet: nothing to show.")
     elif experiment:
         experiment.render(rows, report)
+    elif "pipeline" in rows and (rows["pipeline"] == "tracks").all():
+        tracks.render(rows, report, list(section.varying))
     else:
         _generic(rows, report, list(section.varying))
     report.note = ""

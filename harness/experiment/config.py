@@ -28,7 +28,13 @@ PROJECTIONS = ("fixed", "variable")
 OBSERVE = ("distances", "coordinates")
 INITS = ("smart", "random")
 ALIGNS = ("rigid", "ransac4")
-PIPELINE_NAMES = ("points", "colmap")  # execute.PIPELINES runs them
+PIPELINE_NAMES = ("points", "colmap", "tracks")  # execute.PIPELINES runs them
+TRACK_CAMERAS = ("auto", "orthographic", "scaled", "perspective", "radial")  # reconstruct's camera
+TRACK_OBJECTIVES = ("reprojection", "stress")
+TRACK_LOSSES = ("l2", "huber", "soft_l1", "cauchy")
+TRACK_STARTS = ("own", "file")
+# The files of a tracks run: hashed by their content, never by their path (config.hash)
+TRACK_FILES = ("tracks.path", "tracks.truth", "tracks.cameras")
 MATCHINGS = ("auto", "exhaustive", "sequential")
 BACKENDS = ("loky", "dask")  # where a sweep's runs are computed (the runner's choice)
 
@@ -48,7 +54,20 @@ class Key:
 
 
 KEYS: dict[str, Key] = {
-    "pipeline": Key("points", str, "points: the paper's input, a sampled cloud seen through K projections; colmap: photos of the mesh from images.count cameras, reconstructed by COLMAP (pycolmap), its points scored and its feature tracks fed to mpe3d (views, visibility, noise, projections, observe, init, align and solver do not apply)", PIPELINE_NAMES, hashed_at_default=False),
+    "pipeline": Key("points", str, "points: the paper's input, a sampled cloud seen through K projections; colmap: photos of the mesh from images.count cameras, reconstructed by COLMAP (pycolmap), its points scored and its feature tracks fed to mpe3d (views, visibility, noise, projections, observe, init, align and solver do not apply); tracks: a real keypoint data set (tracks.path), perturbed as the tracks.* keys say and solved as `mpe3d reconstruct` solves it (only seed, solver.name and the tracks.* keys apply)", PIPELINE_NAMES, hashed_at_default=False),
+    "tracks.path": Key(None, str, "pipeline tracks: the keypoint data set, any input `mpe3d reconstruct` reads (CSV, NPZ, JSON, COLMAP model, Bundler .out, BAL), relative to tracks.root; runs are identified by its content, not its path", optional=True, hashed_at_default=False),
+    "tracks.root": Key(None, str, "pipeline tracks: the folder that tracks.path, tracks.truth and tracks.cameras are relative to (null: the current folder); not part of a run's identity", optional=True, hashed_at_default=False),
+    "tracks.truth": Key(None, str, "pipeline tracks: reference 3D points (CSV id,x,y,z with the tracks' ids), for the 3D error after a similarity", optional=True, hashed_at_default=False),
+    "tracks.cameras": Key(None, str, "pipeline tracks: reference cameras, K 3x4 pinhole matrices (.npy) in the views' order, for the camera-centre error", optional=True, hashed_at_default=False),
+    "tracks.views": Key(None, int, "pipeline tracks: keep the first this many views (null: all)", optional=True, hashed_at_default=False),
+    "tracks.noise_px": Key(0.0, float, "pipeline tracks: Gaussian noise of this standard deviation in pixels added to every observation", hashed_at_default=False),
+    "tracks.wrong_fraction": Key(0.0, float, "pipeline tracks: this share of the observations each replaced by another track's observation in the same view (wrong matches), in [0, 1)", hashed_at_default=False),
+    "tracks.drop_fraction": Key(0.0, float, "pipeline tracks: this share of the observations removed (missing observations), in [0, 1)", hashed_at_default=False),
+    "tracks.objective": Key("reprojection", str, "pipeline tracks: bundle adjustment of the reprojection error, or the 3DMPE stress of the pixel distances solved by solver.name (refine, factorize or sgd)", TRACK_OBJECTIVES, hashed_at_default=False),
+    "tracks.camera": Key("auto", str, "pipeline tracks, objective reprojection: the camera model (auto: scaled or perspective, whichever explains the keypoints better; radial: the Bundler/BAL pinhole with k1, k2)", TRACK_CAMERAS, hashed_at_default=False),
+    "tracks.loss": Key("l2", str, "pipeline tracks: the robust loss of the reprojection error (scale 1 px), or refine's loss of the stress (l2, huber, soft_l1)", TRACK_LOSSES, hashed_at_default=False),
+    "tracks.outlier_threshold": Key(20.0, float, "pipeline tracks, objective reprojection: observations beyond this many robust sigmas are taken for wrong matches and dropped (.inf keeps all)", hashed_at_default=False),
+    "tracks.start": Key("own", str, "pipeline tracks: where bundle adjustment starts: mpe3d's own start, or the cameras and points of a Bundler or BAL file", TRACK_STARTS, hashed_at_default=False),
     "images.count": Key(250, int, "pipeline colmap: photos rendered along the camera spiral (>= 2)", hashed_at_default=False),
     "images.size": Key(400, int, "pipeline colmap: width and height of each photo in pixels (64 to 4096)", hashed_at_default=False),
     "images.matching": Key("auto", str, "pipeline colmap: COLMAP's matching: exhaustive, sequential along the camera path, or auto (exhaustive up to 50 photos)", MATCHINGS, hashed_at_default=False),
@@ -121,6 +140,13 @@ class RunConfig:
         """Canonical SHA-256 of the resolved values and the schema version."""
         flat = {key: value for key, value in self.flat().items()
                 if key not in KEYS or KEYS[key].hashed_at_default or value != KEYS[key].default}
+        if self.values["pipeline"] == "tracks":  # the data, not where it lies
+            from mpe3d.harness.userdata.formats import content_digest
+
+            flat.pop("tracks.root", None)
+            for key in TRACK_FILES:
+                if key in flat:
+                    flat[key] = content_digest(track_file(self.values, key))
         payload = json.dumps({"schema": SCHEMA_VERSION, "config": flat},
                              sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
@@ -297,9 +323,48 @@ def _check_ranges(v: dict[str, Any]) -> None:
         raise bad("images.count", "must be at least 2")
     if not 64 <= v["images.size"] <= 4096:
         raise bad("images.size", "must be between 64 and 4096 pixels")
+    if v["pipeline"] == "tracks":
+        _check_tracks(v, bad)
     if v["observe"] == "coordinates" and v["noise.type"] == "distance":
         raise MpeError("noise.type: distance noise perturbs distance matrices; with "
                        "observe=coordinates use correspondence noise", key="noise.type")
+
+
+def track_file(values: Mapping[str, Any], key: str) -> Path | None:
+    """Where the file of ``key`` (one of :data:`TRACK_FILES`) is: under tracks.root when relative."""
+    if values[key] is None:
+        return None
+    path = Path(values[key]).expanduser()
+    root = values["tracks.root"]
+    return path if root is None or path.is_absolute() else Path(root).expanduser() / path
+
+
+def _check_tracks(v: dict[str, Any], bad) -> None:
+    if v["tracks.path"] is None:
+        raise MpeError("tracks.path: pipeline=tracks needs a keypoint data set (tracks.path=FILE)",
+                       key="tracks.path")
+    for key in TRACK_FILES:
+        path = track_file(v, key)
+        if path is not None and not path.exists():
+            hint = " (relative paths are under tracks.root=FOLDER, else the current folder)" \
+                if v["tracks.root"] is None and not path.is_absolute() else ""
+            raise MpeError(f"{key}: {path}: no such file or folder{hint}", key=key)
+    for key in ("tracks.wrong_fraction", "tracks.drop_fraction"):
+        if not 0.0 <= v[key] < 1.0:
+            raise bad(key, "must be in [0, 1)")
+    if not v["tracks.noise_px"] >= 0:
+        raise bad("tracks.noise_px", "must be >= 0 pixels")
+    if v["tracks.views"] is not None and v["tracks.views"] < 2:
+        raise bad("tracks.views", "must be at least 2 (or null: all views)")
+    if not v["tracks.outlier_threshold"] > 0:
+        raise bad("tracks.outlier_threshold", "must be > 0 (.inf keeps every observation)")
+    if v["tracks.objective"] == "stress":
+        if v["solver.name"] not in ("refine", "factorize", "sgd"):
+            raise bad("solver.name", "tracks.objective=stress is solved by refine, factorize or sgd")
+        if v["tracks.loss"] not in ("l2", "huber", "soft_l1"):
+            raise bad("tracks.loss", "the stress takes l2, huber or soft_l1")
+        if v["tracks.loss"] != "l2" and v["solver.name"] != "refine":
+            raise bad("tracks.loss", "a robust loss of the stress needs solver.name=refine")
 
 
 def make_config(overrides: Mapping[str, Any] | None = None,

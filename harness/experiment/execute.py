@@ -15,7 +15,7 @@ from threadpoolctl import threadpool_limits
 
 from mpe3d import plugins
 from mpe3d.errors import MpeError
-from mpe3d.harness.experiment import colmap_pipeline, points_pipeline
+from mpe3d.harness.experiment import colmap_pipeline, points_pipeline, tracks_pipeline
 from mpe3d.harness.experiment.config import RunConfig
 from mpe3d.harness.experiment.limits import check_run_memory
 from mpe3d.harness.experiment.result import Pipeline, RunResult
@@ -30,7 +30,8 @@ from mpe3d.harness.tracking.records import RunRecord
 BLAS_THREADS = 1
 # What each value of the ``pipeline`` key runs (config.PIPELINE_NAMES lists the
 # names without importing the pipelines; a test checks the two agree).
-PIPELINES: dict[str, Pipeline] = {"points": points_pipeline, "colmap": colmap_pipeline}
+PIPELINES: dict[str, Pipeline] = {"points": points_pipeline, "colmap": colmap_pipeline,
+                                   "tracks": tracks_pipeline}
 
 
 def run(config: RunConfig) -> RunResult:

@@ -487,8 +487,10 @@ class Tracker:
             if artifacts and record.truth is not None:
                 import trimesh
 
-                trimesh.PointCloud(record.truth).export(folder / "ground_truth.ply")
-                trimesh.PointCloud(record.reconstruction).export(folder / "reconstruction.ply")
+                # a data set of real tracks may have no reference points: no file, not an empty one
+                for name, cloud in (("ground_truth", record.truth), ("reconstruction", record.reconstruction)):
+                    if cloud is not None and len(cloud):
+                        trimesh.PointCloud(cloud).export(folder / f"{name}.ply")
             if artifacts and record.stress_history is not None and len(record.stress_history) > 1:
                 np.savetxt(folder / "stress_history.csv", np.asarray(record.stress_history, dtype=float),
                            fmt="%.17g", header="stress after each iteration (row 0: the start)")

@@ -22,6 +22,7 @@ written atomically.
 from __future__ import annotations
 
 import csv
+import hashlib
 import json
 import tempfile
 from pathlib import Path
@@ -101,6 +102,35 @@ def _read_csv(path: Path) -> list[dict]:
         views.append({"name": str(name), "ids": group["point"].to_numpy(),
                       "xy": group[["x", "y"]].to_numpy()})
     return views
+
+
+def read_points(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Reference 3D points from a CSV file ``id,x,y,z``: their ids (as text, to
+    match any input's) and an (N, 3) array."""
+    import pandas as pd
+
+    path = Path(path)
+    if not path.is_file():
+        raise MpeError(f"{path}: no such file")
+    try:
+        _check_header(path)
+        frame = pd.read_csv(path, dtype={"id": str}, keep_default_na=False)
+    except pd.errors.EmptyDataError:
+        raise MpeError(f"{path}: empty file") from None
+    except (pd.errors.ParserError, UnicodeDecodeError, csv.Error) as exc:
+        raise MpeError(f"{path}: not a UTF-8 CSV file ({first_line(exc)})") from None
+    frame.columns = [str(c).strip() for c in frame.columns]
+    missing = [c for c in ("id", "x", "y", "z") if c not in frame.columns]
+    if missing or frame.empty:
+        raise MpeError(f"{path}: expected a header id,x,y,z and one row per point")
+    xyz = frame[["x", "y", "z"]].apply(pd.to_numeric, errors="coerce").to_numpy(dtype=float)
+    bad = np.flatnonzero(~np.isfinite(xyz).all(axis=1))
+    if len(bad):
+        raise MpeError(f"{path}: row {int(bad[0]) + 2}: x, y and z must be finite numbers")
+    ids = frame["id"].astype(str).str.strip().to_numpy()
+    if len(set(ids)) < len(ids):
+        raise MpeError(f"{path}: a point id appears twice")
+    return ids, xyz
 
 
 def _view_from_arrays(arrays, name: str, where: str) -> dict:
@@ -233,6 +263,30 @@ def _read_json(path: Path) -> list[dict]:
             arrays["ids"] = np.asarray(_json_ids(item["ids"], where), dtype=object).astype(str)
         views.append(_view_from_arrays(arrays, str(k), where))
     return views
+
+
+_DIGESTS: dict = {}
+
+
+def content_digest(path: str | Path) -> str:
+    """``sha256:<hex>`` of a file's bytes, or of a folder's files (their relative
+    names and bytes, in sorted order): what identifies a data set, wherever it lies.
+    Remembered per (path, size, modification time), so asking again costs a stat."""
+    path = Path(path)
+    if not path.exists():
+        raise MpeError(f"{path}: no such file or folder")
+    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    stamp = (str(path.resolve()), tuple((str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in files))
+    if stamp not in _DIGESTS:
+        digest = hashlib.sha256()
+        for file in files:
+            if path.is_dir():
+                digest.update(f"{file.relative_to(path).as_posix()}\n".encode())
+            with open(file, "rb") as handle:
+                for block in iter(lambda: handle.read(1 << 20), b""):
+                    digest.update(block)
+        _DIGESTS[stamp] = f"sha256:{digest.hexdigest()}"
+    return _DIGESTS[stamp]
 
 
 def read_views(path: str | Path) -> list[dict]:

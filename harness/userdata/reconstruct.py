@@ -96,6 +96,10 @@ class Result:
     unplaced: np.ndarray = field(default_factory=lambda: np.zeros(0))  # ids with no depth fixed
     warnings: list[str] = field(default_factory=list)
     facts: dict[str, Any] = field(default_factory=dict)
+    # reprojection: per observation, in the input's order (view by view, each
+    # view's rows as given), the residual in pixels, and whether rms counts it
+    residuals: np.ndarray | None = None  # (M, 2)
+    counted: np.ndarray | None = None  # (M,) bool
 
     @property
     def report(self) -> dict[str, Any]:
@@ -501,7 +505,7 @@ def _reprojection_result(problem: Problem, tracks, fit, runtime: float,
     }
     return Result(points=fit.points, ids=ids, projections=projections, objective="reprojection",
                   cameras=cameras, dropped=dropped, unplaced=unplaced, warnings=warnings,
-                  facts=facts)
+                  facts=facts, residuals=fit.residuals, counted=fit.counted)
 
 
 def _plain(value):
