@@ -30,6 +30,7 @@ from mpe3d.harness.experiment.config import RunConfig, flatten, track_file
 from mpe3d.harness.experiment.result import RunResult, short_number
 from mpe3d.harness.scene import metrics
 from mpe3d.harness.scene.observe import Scene
+from mpe3d.harness.userdata import vgg
 from mpe3d.harness.userdata.formats import content_digest, read_points, read_projections, read_views
 from mpe3d.harness.userdata.reconstruct import Result, prepare, solve_problem
 
@@ -200,6 +201,11 @@ def _reference(config: RunConfig):
     reference = read_projections(cameras_path) if cameras_path is not None else None
     if reference is not None and reference.shape[1:] != (3, 4):
         raise MpeError(f"{cameras_path}: tracks.cameras takes 3x4 pinhole matrices")
+    data = track_file(config.values, "tracks.path")
+    if (truth is None or reference is None) and data.is_file() and vgg.sniff(data):
+        found_truth, found_cameras = vgg.read_reference(data)  # its .p3d and .P files, if any
+        truth = truth if truth is not None else found_truth
+        reference = reference if reference is not None else found_cameras
     return truth, reference
 
 

@@ -24,6 +24,7 @@ from __future__ import annotations
 import csv
 import hashlib
 import json
+import os
 import tempfile
 from pathlib import Path
 
@@ -276,12 +277,18 @@ def content_digest(path: str | Path) -> str:
     if not path.exists():
         raise MpeError(f"{path}: no such file or folder")
     files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+    if path.is_file() and path.suffix.lower() not in (".csv", ".npz", ".json", ".npy"):
+        from mpe3d.harness.userdata import vgg
+
+        if vgg.sniff(path):  # its corners, cameras and points are part of the data set
+            files += vgg.companions(path)
     stamp = (str(path.resolve()), tuple((str(p), p.stat().st_size, p.stat().st_mtime_ns) for p in files))
     if stamp not in _DIGESTS:
         digest = hashlib.sha256()
         for file in files:
-            if path.is_dir():
-                digest.update(f"{file.relative_to(path).as_posix()}\n".encode())
+            if file != path:
+                base = path if path.is_dir() else path.parent
+                digest.update(f"{Path(os.path.relpath(file, base)).as_posix()}\n".encode())
             with open(file, "rb") as handle:
                 for block in iter(lambda: handle.read(1 << 20), b""):
                     digest.update(block)
@@ -305,13 +312,15 @@ def read_views(path: str | Path) -> list[dict]:
     if path.stat().st_size == 0:
         raise MpeError(f"{path}: empty file")
     if reader is None:
-        from mpe3d.harness.userdata.bundler import read_bundle_file, sniff
+        from mpe3d.harness.userdata import bundler, vgg
 
-        if sniff(path) is None:  # Bundler and BAL files are known by content, any name
+        if vgg.sniff(path):  # before BAL: a 3-view table's first row is 3 integers too
+            return vgg.read_nview(path)
+        if bundler.sniff(path) is None:  # Bundler and BAL files are known by content, any name
             raise MpeError(f"{path}: unknown input format '{path.suffix}' (expected .csv, .npz, "
                            ".json, a folder of .npz files, a COLMAP model folder, a Bundler "
-                           ".out or a BAL problem file)")
-        return read_bundle_file(path)
+                           ".out, a BAL problem or a VGG nview-corners file)")
+        return bundler.read_bundle_file(path)
     return reader(path)
 
 
