@@ -19,6 +19,10 @@ MAX_POINTS = 1200  # per cloud: enough to see the shape, small enough for the pa
 PER_EXPERIMENT = 3
 
 
+# What a viewer's caption says of its run, where the run has it.
+CAPTION_SCORES = (("roa", "ROA"), ("cd_x100", "CD×100"), ("error_3d_median_pct", "3D error (median, %)"))
+
+
 def viewer_script() -> str:
     """The viewer's JavaScript, as shipped with the package."""
     return (files(__package__) / "assets" / "viewer.js").read_text()
@@ -69,10 +73,13 @@ def add_viewers(report, frame: pd.DataFrame, client, experiment: str) -> int:
         clouds = load_clouds(client, row["run_id"])
         if clouds is None:
             continue
-        setting = ", ".join(f"{k}={row[k]}" for k in ("shape", "points", "views", "projections")
-                            if k in row and pd.notna(row[k]))
-        caption = (f"{row['method']}: {setting}; ROA {row['roa']:.3g}, CD×100 {row['cd_x100']:.3g} "
-                   f"(run {row['run_id'][:8]}). Drag to turn, wheel to zoom.")
+        keys = ("tracks.path", "tracks.wrong_fraction", "tracks.noise_px") \
+            if row.get("pipeline") == "tracks" else ("shape", "points", "views", "projections")
+        setting = ", ".join(f"{k}={row[k]}" for k in keys if k in row and pd.notna(row[k]))
+        scores = ", ".join(f"{label} {row[k]:.3g}" for k, label in CAPTION_SCORES
+                           if k in row and pd.notna(row[k]))
+        caption = (f"{row['method']}: {setting}; {scores} (run {row['run_id'][:8]}). "
+                   "Drag to turn, wheel to zoom.")
         report.viewer(clouds, f"{experiment}-{shown}", caption)
         shown += 1
     return shown

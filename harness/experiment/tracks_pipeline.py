@@ -33,6 +33,7 @@ from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.userdata import vgg
 from mpe3d.harness.userdata.formats import content_digest, read_points, read_projections, read_views
 from mpe3d.harness.userdata.reconstruct import Result, prepare, solve_problem
+from mpe3d.solvers.linalg import elongation
 
 MIN_VIEW_POINTS = 3  # what reconstruct asks of every view
 
@@ -224,6 +225,9 @@ def run(config: RunConfig, streams) -> RunResult:
         "unplaced": len(result.unplaced), "converged": float(report.get("converged", True)),
         "iterations": int(report["iterations"]), "runtime_s": float(report["runtime_s"])}
     scores.update(_reprojection_scores(result, perturbed, problem))
+    placed = ~np.isin(result.ids, result.unplaced)
+    if placed.sum() >= 3:  # a run-away solve leaves a cloud far longer than wide
+        scores["elongation"] = elongation(result.points[placed])
     truth, reference = _reference(config)
     aligned, matched = result.points, np.zeros((0, 3))
     if truth is not None:

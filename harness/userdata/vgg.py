@@ -33,7 +33,8 @@ _TOKEN = re.compile(r"^(\*|\d+)$")
 def sniff(path: Path) -> bool:
     """Whether ``path`` is an ``nview-corners`` table: so named (then a damaged
     one is read, to say where it is damaged), or whatever its name, its first
-    lines are rows of the same count (2 or more) of corner indices and stars."""
+    lines (2 or more) are rows of the same count (2 or more) of corner indices
+    and stars."""
     if path.name.endswith("nview-corners"):
         return True
     with open(path, "rb") as handle:
@@ -42,7 +43,8 @@ def sniff(path: Path) -> bool:
     if len(block) == 4096 and len(lines) > 1:
         lines = lines[:-1]  # the read may have cut the last line
     rows = [line.split() for line in lines[:20] if line.strip()]
-    return bool(rows) and len(rows[0]) >= 2 and all(
+    # two rows at least: a BAL header alone is a row of three integers too
+    return len(rows) >= 2 and len(rows[0]) >= 2 and all(
         len(row) == len(rows[0]) and all(_TOKEN.match(t) for t in row) for row in rows)
 
 

@@ -77,6 +77,7 @@ _TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins 
 _ELONGATION = 20.0
 _OUTLIER_ROUNDS = 20
 _READMISSION_ROUNDS = 4
+_RUNAWAY_ROUNDS = 3  # solves without the points that ran away
 _PLACING_STEPS = 10  # Gauss-Newton steps that put a point seen once on its ray
 # In robust sigmas: real tracks have heavy tails (0.1% of VGG's verified house
 # and dino observations lie beyond 26-58 sigmas of a pinhole fit), while a
@@ -211,6 +212,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
             fits[model] = _FITTERS[model](*(fits["perspective"] if model == "radial" else fit)[:2],
                                           tracks.subset(used), principal_point, shared_focal,
                                           lm_options)
+            fits[model], runaways = _without_runaways(fits[model], tracks, used, lm_options)
+            flagged |= runaways  # suspects, as the two-view test's are
     rms = {model: _rms_of(f, tracks, used) for model, f in fits.items()}
     # the models are judged by their median residual, which wrong matches do not sway
     median = {model: _median_of(f, tracks, used) for model, f in fits.items()}
@@ -394,6 +397,27 @@ def _best_of(starts, tracks, lm_options):
     scouting, extra = min(scouted, key=lambda f: f[0].history[-1])
     fit = adjust(scouting.X, scouting.cameras, tracks, **lm_options)
     return fit._replace(history=np.concatenate([scouting.history, fit.history[1:]])), extra
+
+
+def _without_runaways(fit, tracks, used, lm_options):
+    """A solve that did not converge because points ran away (a wrong match
+    along its epipolar line, in a track of two views, puts its point at a
+    depth the pinhole chases towards infinity, and the shared damping holds
+    back every other parameter): solved again without the points beyond
+    ``FAR_FACTOR`` median radii, until none is left. Returns the fit and the
+    observations of the points left out, for the caller's suspects."""
+    out = np.zeros(len(tracks.view), dtype=bool)
+    for _ in range(_RUNAWAY_ROUNDS):
+        if fit.converged:
+            break
+        placed = _placed(tracks, used & ~out)
+        far = placed & ~(median_radii(fit.X, placed) <= FAR_FACTOR)
+        if not far.any() or far.sum() > placed.sum() / 2:
+            break
+        out |= far[tracks.point] & used
+        again = adjust(fit.X, fit.cameras, tracks.subset(_informative(tracks, used & ~out)), **lm_options)
+        fit = again._replace(history=np.concatenate([fit.history, again.history[1:]]))
+    return fit, out
 
 
 def _informative(tracks: Tracks, kept: np.ndarray) -> np.ndarray:

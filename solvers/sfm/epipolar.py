@@ -35,6 +35,10 @@ from scipy.sparse import csr_matrix
 
 SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged
 MIN_COMMON = 12  # points two views must share to be tested together
+# matches a pair needs for its fundamental matrix (7 degrees of freedom) to
+# vote: with fewer, RANSAC's 8-point samples of noisy keypoints from views
+# looking nearly the same way (backyard: 14-44 a frame) fit clean ones badly
+MIN_FUNDAMENTAL = 50
 PARTNERS = 8  # views tested with each view: those sharing the most points with it
 TRIALS = 100  # RANSAC samples per pair
 _SCORED = 2000  # matches a sample is scored on (all of them for smaller pairs)
@@ -60,12 +64,97 @@ def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_view
     rng = np.random.default_rng(seed)
     far = [a | b for a, b in zip(*(off_affine_subspaces(matches, sigmas=sigmas, floor=floor,
                                                         rng=rng, dim=dim) for dim in (3, 2)))]
+    # a pinhole pair's wrong match can sit on the affine hyperplane and off the
+    # true epipolar lines: where the pair has matches enough to fix its
+    # fundamental matrix, that test votes too
+    far = [f | off_epipolar_lines(q, sigmas=sigmas, floor=floor, rng=rng) if len(q) >= MIN_FUNDAMENTAL
+           else f for f, q in zip(far, matches)]
     flags, tests = np.zeros(len(view)), np.zeros(len(view))
     for (ta, tb), f in zip(tested, far):
         for t in (ta, tb):
             np.add.at(flags, t, f)
             np.add.at(tests, t, 1)
-    return (tests >= 2) & (flags > tests / 2)
+    flagged = (tests >= 2) & (flags > tests / 2)
+    return flagged | _alone_and_off(tested, matches, tests, sigmas, floor, rng)
+
+
+def _alone_and_off(tested, matches, tests, sigmas, floor, rng) -> np.ndarray:
+    """(T,) bool: the observations that a single pair tests (a point seen in two
+    views) and that pair's epipolar geometry puts off their epipolar lines.
+
+    No vote can tell which of a two-view track's observations is the wrong
+    one, but the pair can tell that one is: both are flagged, and the point
+    goes unplaced unless the fit takes it back. The pair's test is the
+    fundamental matrix's (:func:`off_epipolar_lines`), which holds for
+    pinholes and affine cameras alike, so a pinhole's perspective is no misfit.
+    """
+    alone = np.zeros(len(tests), dtype=bool)
+    for (ta, tb), q in zip(tested, matches):
+        single = (tests[ta] == 1) | (tests[tb] == 1)
+        if not single.any() or len(q) < MIN_FUNDAMENTAL:
+            continue
+        off = off_epipolar_lines(q, sigmas=sigmas, floor=floor, rng=rng) & single
+        alone[ta[off & (tests[ta] == 1)]] = True
+        alone[tb[off & (tests[tb] == 1)]] = True
+    return alone
+
+
+def _normalising(points: np.ndarray) -> np.ndarray:
+    """Hartley's conditioning: the 3x3 map taking ``points`` to mean 0 and mean
+    distance sqrt(2)."""
+    centre = points.mean(axis=0)
+    scale = np.sqrt(2) / max(float(np.mean(np.linalg.norm(points - centre, axis=1))), 1e-300)
+    return np.array([[scale, 0, -scale * centre[0]], [0, scale, -scale * centre[1]], [0, 0, 1]])
+
+
+def _fundamentals(a: np.ndarray, b: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rank-2 fundamental matrices b^T F a = 0 by the weighted
+    eight-point method, from homogeneous (..., n, 3) rows."""
+    A = (b[..., :, :, None] * a[..., :, None, :]).reshape(*a.shape[:-1], 9) * weights[..., None]
+    F = np.linalg.svd(A)[2][..., -1, :].reshape(*a.shape[:-2], 3, 3)
+    U, S, Vt = np.linalg.svd(F)
+    S[..., 2] = 0.0
+    return U @ (S[..., :, None] * Vt)
+
+
+def _sampson(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(..., n) Sampson distances of the matches (a, b) to F (first-order geometric error)."""
+    Fa = a @ np.swapaxes(F, -1, -2)  # (..., n, 3): the epipolar lines in b's view
+    Fb = b @ F  # and in a's
+    algebraic = np.sum(b * Fa, axis=-1)
+    gradient = Fa[..., 0] ** 2 + Fa[..., 1] ** 2 + Fb[..., 0] ** 2 + Fb[..., 1] ** 2
+    return np.abs(algebraic) / np.sqrt(np.maximum(gradient, 1e-300))
+
+
+def off_epipolar_lines(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float = 0.0,
+                       rng=None, trials: int = 2 * TRIALS) -> np.ndarray:
+    """(n,) bool: the matches (rows of q: x_a, y_a, x_b, y_b) off the two views'
+    robust epipolar geometry (Hartley & Zisserman sections 11.1-11.4): RANSAC
+    over samples of 8 (the normalised eight-point method), MSAC scoring with
+    each sample's own robust scale, then the eight-point fit to the matches
+    near the best, twice; a match is off beyond ``sigmas`` robust sigmas of
+    the Sampson distance and ``floor`` pixels."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    n = len(q)
+    Ta, Tb = _normalising(q[:, :2]), _normalising(q[:, 2:])
+    a = np.c_[q[:, :2], np.ones(n)] @ Ta.T
+    b = np.c_[q[:, 2:], np.ones(n)] @ Tb.T
+    picks = np.argsort(rng.random((trials, n)), axis=1)[:, :8]
+    F = _fundamentals(a[picks], b[picks], np.ones((trials, 8)))
+    distance = _sampson(F, a[None], b[None])  # (trials, n)
+    sigma = np.maximum(np.median(distance, axis=1) / _MAD, 1e-12)
+    cost = np.minimum(distance / sigma[:, None], sigmas).sum(axis=1) + n * np.log(sigma)
+    best = F[np.argmin(cost)]
+    for _ in range(2):
+        distance = _sampson(best, a, b)
+        near = distance <= sigmas * max(np.median(distance) / _MAD, 1e-12)
+        if near.sum() < 8:
+            break
+        best = _fundamentals(a[near], b[near], np.ones(int(near.sum())))
+    distance = _sampson(best, a, b)
+    sigma = np.median(distance) / _MAD
+    pixels = distance / (0.5 * (Ta[0, 0] + Tb[0, 0]))  # the conditioning's scale undone
+    return (distance > sigmas * sigma) & (pixels > floor)
 
 
 def _pairs(view, point, n_views, n_points):

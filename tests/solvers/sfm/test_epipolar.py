@@ -39,14 +39,24 @@ def test_wrong_matches_are_flagged_and_right_ones_are_not(model, rng):
     assert np.sum(flagged & ~wrong) <= 1
 
 
-def test_points_seen_twice_are_never_flagged(rng):
-    view, point, z = _scene(rng)
-    twice = np.flatnonzero(np.bincount(point) >= 2)[:1]
-    keep = (point != twice[0]) | (np.cumsum(point == twice[0]) <= 2)
+@pytest.mark.parametrize("model", ["scaled", "perspective"])
+def test_a_point_seen_twice_whose_views_disagree_is_flagged_in_both(model, rng):
+    """No vote can tell which of a two-view track's observations is wrong, but
+    the pair's epipolar geometry tells that one is: both are suspects."""
+    view, point, z = _scene(rng, model)
+    twice = np.flatnonzero(np.bincount(point) >= 3)[:2]
+    keep = np.ones(len(point), dtype=bool)
+    for p in twice:  # each of the two points kept in its first two views only
+        rows = np.flatnonzero(point == p)
+        keep[rows[2:]] = False
     view, point, z = view[keep], point[keep], z[keep].copy()
-    z[np.flatnonzero(point == twice[0])[0]] += 300.0
+    clean = epipolar_outliers(view, point, z, K, N)
+    assert not clean[np.isin(point, twice)].any()
+    bad = np.flatnonzero(point == twice[0])
+    z[bad[0]] += [0.0, 300.0]
     flagged = epipolar_outliers(view, point, z, K, N)
-    assert not flagged[point == twice[0]].any()
+    assert flagged[bad].all()
+    assert not flagged[point == twice[1]].any()
 
 
 def _real(name):
