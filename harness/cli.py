@@ -462,13 +462,17 @@ def cmd_reproduce(args) -> int:
 
 
 def cmd_reconstruct(args) -> int:
-    from mpe3d.harness.userdata.formats import check_ids_fit, check_output, write_result
+    from mpe3d.harness.userdata.formats import OUTPUT_FORMATS, check_ids_fit, check_output, write_result
     from mpe3d.harness.userdata.reconstruct import prepare, solve_problem
 
     if args.seed < 0:
         raise MpeError(f"--seed: expected an integer >= 0, got {args.seed}")
+    from mpe3d.harness.userdata import bundler
+
     model = _model_out(args.out)  # every output path before any work, not after it
-    out = model / "points3D.ply" if model else check_output(args.out)
+    out = model / "points3D.ply" if model else \
+        check_output(args.out, formats=OUTPUT_FORMATS + bundler.BUNDLE_OUTPUTS)
+    solution = out.suffix.lower() in bundler.BUNDLE_OUTPUTS
     report = check_output(args.report, "--report", (".json",)) if args.report else None
     if report is not None and report.resolve() == out.resolve():
         raise MpeError(f"--report {report}: the same file as --out")
@@ -478,13 +482,16 @@ def cmd_reconstruct(args) -> int:
                       outlier_threshold=args.outlier_threshold,
                       principal_point=args.principal_point, start=args.start)
     check_ids_fit(out, problem.ids)
+    if solution:
+        bundler.check_solution_out(out, problem)
     result = solve_problem(problem)
     extra = {"input": str(args.input), "output": str(model or out)}
     if model:
         from mpe3d.harness.userdata.colmap_model import write_model_folder
 
         result.warnings.extend(write_model_folder(model, problem, result))
-    write_result(out, result, report, extra)
+    writer = bundler.solution_writer(out, problem, result) if solution else None
+    write_result(out, result, report, extra, writer)
     print(_reconstruct_summary(result.report))
     for message in result.warnings:
         print(f"mpe3d: warning: {message}", file=sys.stderr)
@@ -701,8 +708,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "NPZ; JSON; or a folder of .npz per view) or per-view distance matrices, check "
                          "them, and write the 3D cloud with each point's id.")
     rec.add_argument("input", metavar="INPUT", help="a .csv, .npz or .json file, a folder of .npz, "
-                     "a COLMAP model folder, or a Bundler .out or BAL problem file")
-    rec.add_argument("--out", required=True, metavar="CLOUD", help="output: .ply, .csv or .npy")
+                     "a COLMAP model folder, a Bundler .out or BAL problem file, or a VGG "
+                     "nview-corners table (its .corners files beside it)")
+    rec.add_argument("--out", required=True, metavar="CLOUD",
+                     help="output: .ply, .csv or .npy (the cloud, with ids); a folder (a COLMAP "
+                     "model); or .out or .bal (Bundler or BAL: pinhole cameras f, k1, k2, the "
+                     "points and the kept keypoints, centred on the principal point)")
     rec.add_argument("--projections", metavar="FILE",
                      help="known cameras (.npy or .json, K matrices: 2x3 or 3x3 orthographic, "
                      "or 3x4 pinhole): the fixed setting")

@@ -224,3 +224,51 @@ def write_bundler(path: str | Path, view, point, xy, rotations, translations, fo
         Path(temp).write_text("\n".join(lines) + "\n")
     atomic_write(path, save)
     return path
+
+
+# -- a solution out ---------------------------------------------------------------
+
+BUNDLE_OUTPUTS = (".out", ".bal")  # what --out writes in these formats, by suffix
+PINHOLE_CAMERAS = ("perspective", "radial")
+
+
+def check_solution_out(path: Path, problem) -> None:
+    """Refuse, before the solve, a Bundler or BAL output that could not hold its
+    result: those files hold pinhole cameras (f, k1, k2) and keypoints."""
+    if problem.objective != "reprojection" or problem.cameras is not None:
+        raise MpeError(f"--out {path}: a {path.suffix} file holds fitted pinhole cameras; "
+                       "solve the keypoints by bundle adjustment (no --projections, objective "
+                       "reprojection)")
+    if problem.start is None and problem.camera not in PINHOLE_CAMERAS:
+        raise MpeError(f"--out {path}: a {path.suffix} file holds pinhole cameras, and "
+                       f"--camera {problem.camera} may fit another; give --camera perspective or radial")
+
+
+def solution_arrays(problem, result) -> dict:
+    """The reconstruction of ``result`` as Bundler/BAL arrays: its placed points,
+    the observations that the fit kept (centred on each camera's principal
+    point, as those files measure them), and each camera's R, t, f, k1, k2."""
+    placed = ~np.isin(problem.ids, result.unplaced.astype(problem.ids.dtype))
+    index = np.cumsum(placed) - 1  # a placed point's row in the file
+    views = problem.observations.views
+    view = np.concatenate([np.full(len(v.ids), k) for k, v in enumerate(views)])
+    point = np.concatenate([v.ids for v in views])
+    xy = np.concatenate([v.coordinates for v in views])
+    kept = result.counted & placed[point]
+    cams = result.cameras
+    centres = np.stack([(c.P[:, :3] @ c.rotation.T)[:2, 2] for c in cams])  # K = P[:, :3] R^T
+    return {"view": view[kept], "point": index[point[kept]], "xy": xy[kept] - centres[view[kept]],
+            "rotations": np.stack([c.rotation for c in cams]),
+            "translations": np.stack([c.translation for c in cams]),
+            "focal": np.array([c.focal_px for c in cams]),
+            "distortion": np.array([[c.k1 or 0.0, c.k2 or 0.0] for c in cams]),
+            "points": result.points[placed]}
+
+
+def solution_writer(path: Path, problem, result):
+    """A function writing ``result`` as a Bundler ``.out`` or BAL file to the path it is given."""
+    if result.objective != "reprojection" or any(c.focal_px is None for c in result.cameras):
+        raise MpeError(f"--out {path}: the fit has no pinhole cameras to write")
+    arrays = solution_arrays(problem, result)
+    write = write_bal if path.suffix.lower() == ".bal" else write_bundler
+    return lambda temp: write(temp, **arrays)

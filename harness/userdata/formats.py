@@ -453,10 +453,11 @@ def write_cloud(path: str | Path, points: np.ndarray, ids: np.ndarray) -> Path:
     return path
 
 
-def write_result(out: Path, result, report: Path | None = None, extra: dict | None = None) -> None:
-    """The cloud of ``result`` (its points, ids and report) and, if asked, its
-    JSON report: both, or neither."""
-    files = [(out, _cloud_writer(out, result.points, result.ids))]
+def write_result(out: Path, result, report: Path | None = None, extra: dict | None = None,
+                 writer=None) -> None:
+    """The cloud of ``result`` (its points, ids and report; or what ``writer``
+    writes) and, if asked, its JSON report: both, or neither."""
+    files = [(out, writer or _cloud_writer(out, result.points, result.ids))]
     if report is not None:
         text = json.dumps({**(extra or {}), **result.report}, indent=1)
         files.append((report, lambda temp: Path(temp).write_text(text)))

@@ -145,3 +145,51 @@ def test_damaged_files_get_one_line(kind, text, message, tmp_path, rng, capsys):
     assert code == 2, err
     assert message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "cloud.ply").exists()
+
+
+@pytest.mark.parametrize("kind, suffix", [("bundler", ".bal"), ("bal", ".out")])
+def test_a_solution_written_as_bundler_or_bal_reads_back_as_solved(kind, suffix, tmp_path, rng, capsys):
+    p = _problem(rng)
+    source = _write(kind, tmp_path / "problem.txt", p, rng)
+    out = tmp_path / f"solved{suffix}"
+    assert main(["reconstruct", str(source), "--out", str(out)]) == 0
+    solved = reconstruct(source)
+    back = read_bundle_file(out)
+    for k, view in enumerate(back):
+        camera = view["start_camera"]
+        assert camera["focal"] == pytest.approx(solved.cameras[k].focal_px, rel=1e-12)
+        np.testing.assert_allclose(camera["distortion"], [solved.cameras[k].k1, solved.cameras[k].k2],
+                                   rtol=1e-10, atol=1e-14)
+        np.testing.assert_allclose(camera["rotation"], solved.cameras[k].rotation, atol=1e-12)
+    # the written start is the solution: it reprojects onto the written keypoints exactly
+    again = reconstruct(out)
+    assert again.facts["reprojection_rms_px"] < 1e-6 and again.facts["iterations"] <= 2
+    placed = ~np.isin(solved.ids, solved.unplaced)
+    assert _similarity_error(again.points, solved.points[placed][again.ids]) < 1e-9
+
+
+def test_a_pinhole_solution_of_keypoints_is_written_centred_on_its_principal_point(tmp_path, rng):
+    p = _problem(rng)
+    rows = [(v, i, float(x) + 400.0, float(y) + 300.0) for v, i, (x, y) in zip(p["view"], p["point"], p["xy"])]
+    csv = tmp_path / "keypoints.csv"
+    csv.write_text("view,point,x,y\n" + "\n".join(f"{v},{i},{x!r},{y!r}" for v, i, x, y in rows) + "\n")
+    out = tmp_path / "solved.bal"
+    assert main(["reconstruct", str(csv), "--out", str(out), "--camera", "radial",
+                 "--principal-point", "400,300"]) == 0
+    again = reconstruct(out)
+    assert again.facts["reprojection_rms_px"] < 1e-4
+
+
+@pytest.mark.parametrize("flags, says", [
+    ([], "give --camera perspective or radial"),
+    (["--camera", "scaled"], "--camera scaled may fit another"),
+    (["--objective", "stress"], "holds fitted pinhole cameras"),
+])
+def test_a_solution_file_that_could_not_hold_the_fit_is_refused_before_the_solve(flags, says, tmp_path, rng,
+                                                                                 capsys):
+    p = _problem(rng)
+    csv = tmp_path / "keypoints.csv"
+    csv.write_text("view,point,x,y\n" + "\n".join(
+        f"{v},{i},{float(x)!r},{float(y)!r}" for v, i, (x, y) in zip(p["view"], p["point"], p["xy"])) + "\n")
+    assert main(["reconstruct", str(csv), "--out", str(tmp_path / "x.out"), *flags]) == 2
+    assert says in capsys.readouterr().err and not (tmp_path / "x.out").exists()
