@@ -1,5 +1,6 @@
 """Compiled passes: the 3DMPE stress (paper Eq. 1) one view at a time, SMACOF's
-Guttman transform, and placing one point against anchors.
+Guttman transform, placing one point against anchors, and the Schur term of
+bundle adjustment's reduced camera system.
 
 For each pair i < j of a view the stress kernel forms the image distance
 e_ij = ||y_i - y_j||, the residual r_ij = D_ij - e_ij, its weight
@@ -427,6 +428,27 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
 warmed = False
 
 
+@njit(cache=True, nogil=True)
+def schur_products(Y, cols, starts, size):
+    """S = sum over points i of Y_i^T Y_i, scattered to the camera columns:
+    Y (T, 3, c) holds each observation's U_i^-1/2 W_t, grouped by point
+    (point i's observations are rows starts[i]:starts[i + 1]), and cols (T, c)
+    the camera columns of each (a shared column may recur). Only the pairs of
+    observations of one point meet, so the work is sum_i m_i^2 c^2, where the
+    sparse product Y^T Y pays index arithmetic on every one of them."""
+    S = np.zeros((size, size))
+    c = Y.shape[2]
+    for i in range(len(starts) - 1):
+        for a in range(starts[i], starts[i + 1]):
+            for b in range(starts[i], starts[i + 1]):
+                for p in range(c):
+                    row = cols[a, p]
+                    y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
+                    for q in range(c):
+                        S[row, cols[b, q]] += y0 * Y[b, 0, q] + y1 * Y[b, 1, q] + y2 * Y[b, 2, q]
+    return S
+
+
 def warm() -> None:
     """Compile (or load from the on-disk cache) every kernel now, once per
     process, so that no solve pays for it inside its timed region."""
@@ -444,4 +466,5 @@ def warm() -> None:
     multilaterate(np.zeros(3), P, Y, d, d, 1)
     row_misfits(np.zeros(3), P, Y, d, np.array([0, 3]))
     row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
+    schur_products(np.ones((2, 3, 2)), np.array([[0, 1], [1, 2]]), np.array([0, 2]), 3)
     warmed = True

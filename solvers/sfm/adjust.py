@@ -12,9 +12,9 @@ from typing import NamedTuple
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
-from scipy.sparse import csr_matrix
 from threadpoolctl import threadpool_limits
 
+from mpe3d.solvers.kernels import schur_products
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
 from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, rms
@@ -33,11 +33,6 @@ class Fit(NamedTuple):
 REPROJECTION_LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 
 
-_DENSE_Y = 4_000_000  # entries of the Schur factor Y below which it is made dense
-# A sparse product costs this many times a dense BLAS one per multiply-add
-# (measured: 50 radial cameras, 8000 points in half the views each: Y^T Y took
-# 3.6 s sparse, 0.2 s dense by row blocks)
-_SPARSE_COST = 30
 
 
 def one_blas_thread(func):
@@ -69,7 +64,7 @@ def _robust_weights(squared: np.ndarray, loss: str, scale: float):
 class _Structure:
     """Index arrays of the bundle's normal equations, fixed for one set of tracks:
     each observation's camera columns, where its block of the camera system
-    goes, and the sparsity of Y (rows: a point's 3 axes; columns: cameras)."""
+    goes, and each point's observations (the rows of its block of Y)."""
 
     def __init__(self, tracks: Tracks, cameras: Cameras):
         K, pv, ns = tracks.n_views, cameras.per_view, cameras.shared.size
@@ -78,11 +73,10 @@ class _Structure:
                                     np.broadcast_to(K * pv + np.arange(ns), (len(tracks.view), ns))],
                                    axis=1)  # (T, pv + ns)
         # each (observation, axis) gives the c entries of row 3 * point + axis
-        c = self.cols.shape[1]
-        self.y_order = row_order(tracks.point, tracks.n_points)
-        counts = np.repeat(np.bincount(tracks.point, minlength=tracks.n_points), 3) * c
-        self.y_indptr = np.concatenate([[0], np.cumsum(counts)])
-        self.y_indices = self.cols[self.y_order // 3].ravel()
+        # the observations grouped by point, and where each point's begin
+        self.by_point = np.argsort(tracks.point, kind="stable")
+        self.point_starts = np.concatenate(
+            [[0], np.cumsum(np.bincount(tracks.point, minlength=tracks.n_points))])
         # a view's observations share their camera columns: its block of the
         # camera system is one c x c product, placed at these columns
         self.view_rows = [np.flatnonzero(tracks.view == k) for k in range(K)]  # once, not per step
@@ -98,20 +92,6 @@ class _Structure:
                 J = d_c[rows].reshape(-1, c)
                 V[np.ix_(cols, cols)] += (np.repeat(weight[rows], 2)[:, None] * J).T @ J
         return V
-
-
-def row_order(point: np.ndarray, n_points: int) -> np.ndarray:
-    """argsort(3 * point[:, None] + [0, 1, 2]) (stable), as a counting sort:
-    row 3p + a lists (t, a) for the observations t of point p in order."""
-    by_point = np.argsort(point, kind="stable")
-    counts = np.bincount(point, minlength=n_points)
-    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    p = point[by_point]
-    rank = np.arange(len(point)) - start[p]  # position within its point's observations
-    order = np.empty(3 * len(point), dtype=np.int64)
-    for a in range(3):
-        order[3 * start[p] + a * counts[p] + rank] = 3 * by_point + a
-    return order
 
 
 def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
@@ -187,30 +167,13 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
 
 
 def _schur_term(U_damped, W, structure, point):
-    """sum_i W_i^T U_i^-1 W_i = Y^T Y, with Y the sparse stack of U_i^-1/2 W_i."""
+    """sum_i W_i^T U_i^-1 W_i = Y^T Y, with Y the stack of U_i^-1/2 W_i, by
+    the compiled pass over each point's pairs of observations
+    (:func:`mpe3d.solvers.kernels.schur_products`)."""
     values, vectors = np.linalg.eigh(U_damped)
     root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
-    data = np.matmul(root[point], W).reshape(-1, W.shape[2])[structure.y_order]
-    Y = csr_matrix((data.ravel(), structure.y_indices, structure.y_indptr),
-                   shape=(3 * len(U_damped), structure.size))
-    Y.sum_duplicates()  # the shared columns (focal length) recur within a row
-    if Y.shape[0] * Y.shape[1] <= _DENSE_Y:  # few points: BLAS on the dense Y is faster
-        Y = Y.toarray()
-        return Y.T @ Y
-    pairs = float(np.sum(np.diff(Y.indptr).astype(float) ** 2))  # the sparse product's work
-    if _SPARSE_COST * pairs > float(Y.shape[0]) * Y.shape[1] ** 2:
-        return _dense_by_blocks(Y)  # points seen by many of the cameras: BLAS wins
-    return (Y.T @ Y).toarray()
-
-
-def _dense_by_blocks(Y) -> np.ndarray:
-    """Y^T Y for a sparse Y, densely, a block of rows at a time (bounded memory)."""
-    rows = max(1, _DENSE_Y // Y.shape[1])
-    out = np.zeros((Y.shape[1], Y.shape[1]))
-    for start in range(0, Y.shape[0], rows):
-        block = Y[start:start + rows].toarray()
-        out += block.T @ block
-    return out
+    Y = np.matmul(root[point[structure.by_point]], W[structure.by_point])  # (T, 3, c), by point
+    return schur_products(Y, structure.cols[structure.by_point], structure.point_starts, structure.size)
 
 
 def _damped_step(U, V, W, g_x, g_c, lam, structure, point):

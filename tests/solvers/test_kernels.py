@@ -7,7 +7,6 @@ import pytest
 
 from mpe3d.solvers import kernels
 from mpe3d.solvers.linalg import gram_by_group, matvec_by_group, pinv_psd
-from mpe3d.solvers.sfm.adjust import row_order
 
 
 def test_smacof_takes_scikit_learns_steps(rng):
@@ -109,10 +108,21 @@ def test_grouped_products_equal_the_per_row_ones(rng):
     assert np.allclose(gram_by_group(Y, group, 5), [Y[group == g].T @ Y[group == g] for g in range(5)])
 
 
-def test_bundle_row_order_is_the_stable_argsort(rng):
-    point = rng.integers(0, 40, size=700)
-    rows = (3 * point[:, None] + np.arange(3)).ravel()
-    assert np.array_equal(row_order(point, 50), np.argsort(rows, kind="stable"))
+def test_the_schur_products_are_the_sparse_stack_s_gram_matrix(rng):
+    """S = Y^T Y for Y stacking each point's 3 rows over its observations'
+    camera columns; a shared column (a lens for all views) recurs in a row."""
+    n_points, n_views, per_view = 30, 6, 4
+    point = np.sort(rng.integers(0, n_points, size=120))
+    view = rng.integers(0, n_views, size=120)
+    cols = np.c_[per_view * view[:, None] + np.arange(per_view), np.full(120, n_views * per_view)]
+    size = n_views * per_view + 1
+    Y = rng.normal(size=(120, 3, per_view + 1))
+    dense = np.zeros((3 * n_points, size))
+    for t in range(120):
+        for a in range(3):
+            np.add.at(dense[3 * point[t] + a], cols[t], Y[t, a])
+    starts = np.concatenate([[0], np.cumsum(np.bincount(point, minlength=n_points))])
+    assert np.allclose(kernels.schur_products(Y, cols, starts, size), dense.T @ dense, rtol=1e-12, atol=1e-12)
 
 
 def test_the_fixed_elimination_is_the_same_in_blocks(monkeypatch):
