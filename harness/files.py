@@ -121,3 +121,28 @@ class SpaceMeter:
             except OSError:
                 continue
         return None
+
+
+class Reserve:
+    """``size`` bytes held in ``folder`` while a sweep runs, given back when that
+    disk fills: closing the stopped sweep's runs (KILLED, the parent's counts)
+    needs room too, and a SQLite store that cannot write them leaves them RUNNING.
+    A disk already too full to hold the reserve simply gets none."""
+
+    def __init__(self, folder: str | Path | None, size: int = 1 << 20):
+        self.path: Path | None = None
+        if folder is None:
+            return
+        path = Path(folder) / ".mpe3d-reserve"
+        try:
+            with open(path, "wb") as handle:
+                os.posix_fallocate(handle.fileno(), 0, size)  # blocks taken now, not on write
+        except (OSError, AttributeError):  # no room, or a system without fallocate
+            path.unlink(missing_ok=True)
+            return
+        self.path = path
+
+    def release(self) -> None:
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
+            self.path = None

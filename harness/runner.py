@@ -35,7 +35,7 @@ from mpe3d.errors import DiskFull, MpeError, StoreError
 from mpe3d.harness.experiment.config import BACKENDS, RunConfig
 from mpe3d.harness.experiment.execute import code_of, failed_record, run_record
 from mpe3d.harness.experiment.sweep import Sweep
-from mpe3d.harness.files import SpaceMeter, human_bytes, same_device
+from mpe3d.harness.files import Reserve, SpaceMeter, human_bytes, same_device
 from mpe3d.harness.shutdown import EXIT_CODE, GRACE_S, Shutdown, kill_descendants
 from mpe3d.harness.tracking.journal import Journal
 from mpe3d.harness.tracking.ownership import Heartbeat, Owner
@@ -299,8 +299,10 @@ class _Task:
 class _Loop:
     """Claim, compute, journal, log: one sweep invocation's runs."""
 
-    def __init__(self, plans, tracker, pool, journal: Journal, artifacts: bool, reporter: Reporter):
+    def __init__(self, plans, tracker, pool, journal: Journal, artifacts: bool, reporter: Reporter,
+                 reserve: Reserve | None = None):
         self.tracker, self.pool, self.journal = tracker, pool, journal
+        self.reserve = reserve or Reserve(None)
         self.artifacts, self.reporter = artifacts, reporter
         self.owner = Owner.current()
         self.plans = plans
@@ -478,6 +480,7 @@ class _Loop:
         abandoned = [task.run_id for task in self.in_flight.values()]
         self.pool.terminate()
         kept = self.journal.pending(self.tracker.uri)
+        self.reserve.release()  # the room to close the runs below
         if not full:  # an unreachable store would only make closing its runs wait
             return StoreError(f"{error.message}; stopped: {kept} computed result(s) wait in "
                               f"{self.journal.folder} and go into the store at the next run of "
@@ -532,9 +535,11 @@ def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "lok
             plan.parent_id = tracker.start_parent(plan.experiment_id, plan.sweep, {
                 "mpe3d.backend": backend, "mpe3d.runs_planned": str(len(plan.todo))}, owner)
     reporter.start(sum(len(p.todo) for p in plans), sum(p.skipped for p in plans))
+    folders = tracker.local_folders()
+    reserve = Reserve(folders[0] if folders else None)
     try:
         with _pool(jobs, backend, scheduler) as pool:
-            loop = _Loop(plans, tracker, pool, journal, artifacts, reporter)
+            loop = _Loop(plans, tracker, pool, journal, artifacts, reporter, reserve)
             with Heartbeat(lambda: tracker.heartbeat(list(loop.open_parents))) as heartbeat:
                 try:
                     completed = loop.run(heartbeat, stop)
@@ -547,6 +552,7 @@ def run_plans(plans: list[Plan], tracker, *, jobs: int = -1, backend: str = "lok
                     loop.wind_down(stop)
                     raise KeyboardInterrupt
     finally:
+        reserve.release()
         reporter.stop()
         journal.tidy()  # an empty journal folder is litter, stopped or not
     return plans

@@ -38,6 +38,7 @@ import threading
 EXIT_CODE = 130
 GRACE_S = 3.0  # what a running worker may still finish, and be logged, after the first signal
 DEADLINE_S = 8.0  # after the first signal the process is gone within this, whatever it does
+FINALISE_S = 30.0  # a command that is over leaves within this, whatever its libraries' exit hooks do
 SIGNALS = (signal.SIGINT, signal.SIGTERM)
 LINE = "mpe3d: interrupted"
 
@@ -59,6 +60,7 @@ class Shutdown:
         self._raised = False
         self._installed = False
         self._timer: threading.Timer | None = None
+        self._finalise: threading.Timer | None = None
 
     # -- installation --------------------------------------------------------
 
@@ -82,8 +84,9 @@ class Shutdown:
         for sig, handler in self._previous.items():
             signal.signal(sig, handler)
         self._sockets[1].close()  # the watcher reads end-of-file and leaves
-        if self._timer is not None:  # an in-process caller (a test) outlives its command
-            self._timer.cancel()
+        for timer in (self._timer, self._finalise):  # an in-process caller outlives its command
+            if timer is not None:
+                timer.cancel()
         self._installed = False
 
     # -- what a signal does ----------------------------------------------------
@@ -158,9 +161,24 @@ class Shutdown:
         their default action, and a second Ctrl-C then killed the process
         (exit -2) after it had said it stopped; an ignored signal stays ignored."""
         self.finishing = True
-        if code == EXIT_CODE and self._installed:
+        if not self._installed:
+            return
+        if code == EXIT_CODE:
             for sig in SIGNALS:
                 signal.signal(sig, signal.SIG_IGN)
+        # Exit hooks (loky's, SQLite's) once hung a stopped sweep for minutes after its
+        # line was said; what it computed is kept by then, so the bound costs nothing.
+        self._finalise = threading.Timer(FINALISE_S, self._leave, args=(code,))
+        self._finalise.daemon = True
+        self._finalise.start()
+
+    @staticmethod
+    def _leave(code: int) -> None:
+        kill_descendants(grace_s=1.0)
+        with contextlib.suppress(Exception):
+            sys.stdout.flush()
+            sys.stderr.flush()
+        os._exit(code)
 
     def _expire(self) -> None:
         """The watchdog: the bound is up and the process still lives."""
