@@ -65,3 +65,20 @@ def test_ui_stops_on_ctrl_c_with_its_server(tmp_path):
 def test_a_dask_cluster_and_a_single_job_stop_the_same_way(tmp_path, jobs, backend):
     check(trial(tmp_path, "running", random.Random(jobs), how="group-sigint", repeats=16,
                 jobs=jobs, backend=backend))
+
+
+def test_a_command_that_is_over_leaves_even_when_an_exit_hook_hangs():
+    """An exit hook that never returns (as loky's or SQLite's once did after a
+    full disk stopped a sweep) cannot keep the process: it leaves with its code."""
+    import subprocess
+    import sys
+    import time
+
+    script = ("import atexit, time\n"
+              "from mpe3d.harness import shutdown\n"
+              "shutdown.FINALISE_S = 1.0\n"
+              "atexit.register(time.sleep, 600)\n"
+              "shutdown.Shutdown().__enter__().settle(3)\n")
+    start = time.monotonic()
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=60)
+    assert done.returncode == 3 and time.monotonic() - start < 30, done
