@@ -315,6 +315,7 @@ class _Loop:
         self.space = SpaceMeter([journal.folder, *tracker.local_folders()])
         self.logged = 0  # results in the store or the journal
         self.lost = 0  # computed, but no room anywhere to keep them: computed again next time
+        self.unlogged: list[str] = []  # claims whose result the store refused: still RUNNING there
 
     def run(self, heartbeat: Heartbeat, stop: Shutdown) -> bool:
         """Compute and log every task; False when ``stop`` was requested first
@@ -395,7 +396,11 @@ class _Loop:
         except DiskFull:
             self._unjournaled(task, record)
             raise
-        self.tracker.log_record(task.run_id, record, artifacts=self.artifacts)
+        try:
+            self.tracker.log_record(task.run_id, record, artifacts=self.artifacts)
+        except StoreError:
+            self.unlogged.append(task.run_id)  # journaled: closed as KILLED, replayed next time
+            raise
         self.journal.remove(entry)
         self._count(task, record)
 
@@ -405,6 +410,7 @@ class _Loop:
             self.tracker.log_record(task.run_id, record, artifacts=self.artifacts)
         except StoreError:
             self.lost += 1
+            self.unlogged.append(task.run_id)
         else:
             self._count(task, record)
 
@@ -445,7 +451,7 @@ class _Loop:
         self._keep([future for future in self.in_flight if future.done()])
         abandoned = [task.run_id for task in self.in_flight.values()]
         self.in_flight.clear()
-        self.interrupted(abandoned)
+        self.interrupted(abandoned + self.unlogged)
 
     def _keep(self, done) -> None:
         """Log what completed; a future that failed while stopping was cut short
@@ -485,7 +491,7 @@ class _Loop:
             return StoreError(f"{error.message}; stopped: {kept} computed result(s) wait in "
                               f"{self.journal.folder} and go into the store at the next run of "
                               f"this command; {len(abandoned)} run(s) in flight abandoned")
-        self.interrupted(abandoned + journaled, reason="no space left on the device")
+        self.interrupted(abandoned + journaled + self.unlogged, reason="no space left on the device")
         return DiskFull(self._no_space(error, kept), error.path)
 
     def _no_space(self, error: DiskFull, kept: int) -> str:
