@@ -30,9 +30,9 @@ class _Parser(argparse.ArgumentParser):
 
 
 def _print_summary(summary: dict) -> None:
-    from mpe3d.harness.experiment.execute import PIPELINES
+    from mpe3d.harness.experiment.execute import pipeline
 
-    print("\n".join(PIPELINES[summary["config"]["pipeline"]].describe(summary)))
+    print("\n".join(pipeline(summary["config"]["pipeline"]).describe(summary)))
 
 
 def cmd_run(args) -> int:

@@ -15,8 +15,7 @@ from threadpoolctl import threadpool_limits
 
 from mpe3d import plugins
 from mpe3d.errors import MpeError
-from mpe3d.harness.experiment import colmap_pipeline, points_pipeline, tracks_pipeline
-from mpe3d.harness.experiment.config import RunConfig
+from mpe3d.harness.experiment.config import PIPELINE_NAMES, RunConfig
 from mpe3d.harness.experiment.limits import check_run_memory
 from mpe3d.harness.experiment.result import Pipeline, RunResult
 from mpe3d.harness.scene.observe import seed_streams
@@ -28,10 +27,22 @@ from mpe3d.harness.tracking.records import RunRecord
 # workers) makes every run bit-identical wherever it runs. Sweeps get their
 # parallelism from running several runs at once.
 BLAS_THREADS = 1
-# What each value of the ``pipeline`` key runs (config.PIPELINE_NAMES lists the
-# names without importing the pipelines; a test checks the two agree).
-PIPELINES: dict[str, Pipeline] = {"points": points_pipeline, "colmap": colmap_pipeline,
-                                   "tracks": tracks_pipeline}
+
+
+
+def pipeline(name: str) -> Pipeline:
+    """What the ``pipeline`` key's value ``name`` runs, imported when first asked
+    for: the colmap pipeline brings pycolmap and POT, which a run of the others
+    need not load (seconds of every fresh process)."""
+    if name == "points":
+        from mpe3d.harness.experiment import points_pipeline as chosen
+    elif name == "colmap":
+        from mpe3d.harness.experiment import colmap_pipeline as chosen
+    elif name == "tracks":
+        from mpe3d.harness.experiment import tracks_pipeline as chosen
+    else:
+        raise MpeError(f"pipeline: unknown pipeline '{name}' (use {' or '.join(PIPELINE_NAMES)})")
+    return chosen
 
 
 def run(config: RunConfig) -> RunResult:
@@ -43,7 +54,7 @@ def run(config: RunConfig) -> RunResult:
 
 def _run(config: RunConfig) -> RunResult:
     start = time.perf_counter()
-    result = PIPELINES[config["pipeline"]].run(config, seed_streams(config["seed"]))
+    result = pipeline(config["pipeline"]).run(config, seed_streams(config["seed"]))
     return replace(result, wall_s=time.perf_counter() - start)
 
 
@@ -96,7 +107,7 @@ def run_record(config: RunConfig, keep_clouds: bool = True, plugin_files=()) -> 
 
 
 def _title(result: RunResult) -> str:
-    return PIPELINES[result.config["pipeline"]].title(result)
+    return pipeline(result.config["pipeline"]).title(result)
 
 
 def _picture(result: RunResult) -> np.ndarray | str:

@@ -49,7 +49,7 @@ class Pipeline(Protocol):
     """A way from a run's config to its scores, chosen by the ``pipeline`` key.
 
     A module of :mod:`mpe3d.harness.experiment` with these three functions,
-    listed in :data:`mpe3d.harness.experiment.execute.PIPELINES`.
+    listed in :func:`mpe3d.harness.experiment.execute.pipeline`.
     """
 
     def run(self, config: RunConfig, streams: dict[str, np.random.Generator]) -> RunResult:

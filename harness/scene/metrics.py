@@ -19,7 +19,6 @@ Scales, for comparing with the paper's tables (see the README):
 from __future__ import annotations
 
 import numpy as np
-import ot
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
@@ -82,6 +81,8 @@ def earth_movers(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
     sum form then counts len(a) points, so both forms agree with Eq. 4
     whenever the sizes are equal.
     """
+    import ot  # here, not at the top: POT imports scikit-learn, 1.5 s of every fresh process
+
     n, m = len(a), len(b)
     M = cdist(a, b)
     plan = ot.emd(np.full(n, 1.0 / n), np.full(m, 1.0 / m), M,

@@ -70,7 +70,36 @@ def source_fingerprint(source: str) -> str:
 
 
 def module_file(name: str) -> Path | None:
-    """Where module ``name`` of this package lives (its ``__init__.py`` for a package)."""
+    """Where module ``name`` of this package lives (its ``__init__.py`` for a package).
+
+    Read off the package's folders, not by ``find_spec``: that imports every
+    parent package, and the fingerprint would load the solvers and POT into a
+    fresh process before its first run needs them (a second of each start).
+    A layout not on disk (an editable install's finder) falls back to it.
+    """
+    parts = name.split(".")
+    folder = _package_folder()
+    if parts[0] != PACKAGE or folder is None:
+        return _spec_file(name)
+    for i, part in enumerate(parts[1:], start=2):
+        if (folder / part / "__init__.py").is_file():
+            folder = folder / part
+        elif (folder / f"{part}.py").is_file():
+            return folder / f"{part}.py" if i == len(parts) else None  # else a name in a module
+        elif i == 2:  # a top-level folder not beside mpe3d/__init__.py: another layout
+            return _spec_file(name)
+        else:
+            return None  # a name a package's __init__ defines
+    return folder / "__init__.py"
+
+
+@lru_cache(maxsize=1)
+def _package_folder() -> Path | None:
+    spec = importlib.util.find_spec(PACKAGE)
+    return Path(spec.origin).parent if spec and spec.origin else None
+
+
+def _spec_file(name: str) -> Path | None:
     try:
         spec = importlib.util.find_spec(name)
     except (ImportError, ValueError):

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from mpe3d import solvers
+from mpe3d.errors import MpeError
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.experiment.execute import run
 from mpe3d.harness.scene.metrics import align_ransac4
@@ -98,8 +99,10 @@ def test_a_solvers_runtime_is_its_solve(solver):
 def test_every_pipeline_name_has_a_pipeline():
     """The config's names and the registry agree, and each pipeline keeps the protocol."""
     from mpe3d.harness.experiment.config import KEYS, PIPELINE_NAMES
-    from mpe3d.harness.experiment.execute import PIPELINES
+    from mpe3d.harness.experiment.execute import pipeline
 
-    assert tuple(PIPELINES) == PIPELINE_NAMES == KEYS["pipeline"].choices
-    for name, pipeline in PIPELINES.items():
-        assert all(callable(getattr(pipeline, f, None)) for f in ("run", "title", "describe")), name
+    assert PIPELINE_NAMES == KEYS["pipeline"].choices
+    for name in PIPELINE_NAMES:
+        assert all(callable(getattr(pipeline(name), f, None)) for f in ("run", "title", "describe")), name
+    with pytest.raises(MpeError, match="unknown pipeline 'nope'"):
+        pipeline("nope")

@@ -82,11 +82,34 @@ def test_every_module_a_run_loads_is_in_the_code_identity():
                          text=True, timeout=600)
     assert out.returncode == 0, out.stderr[-2000:]
     seen = json.loads(out.stdout.splitlines()[-1])
-    assert "mpe3d.harness.userdata.reconstruct" in seen["loaded"]  # the colmap pipeline did run
+    # each pipeline is imported when a run asks for it: both did run
+    assert {"mpe3d.harness.experiment.points_pipeline",
+            "mpe3d.harness.experiment.colmap_pipeline"} <= set(seen["loaded"])
     assert set(seen["loaded"]) <= set(seen["fingerprinted"]), \
         set(seen["loaded"]) - set(seen["fingerprinted"])
     for away in ("mpe3d.harness.cli", "mpe3d.harness.tracking.store", "mpe3d.reports", "mpe3d.sweeps"):
         assert away not in seen["fingerprinted"]
+
+
+IDENTITY_ALONE = """
+import importlib.util, json, sys
+from pathlib import Path
+from mpe3d.harness.tracking import identity
+identity.code_identity()
+heavy = sorted(m for m in ("mpe3d.solvers", "sklearn", "ot", "pycolmap") if m in sys.modules)
+wrong = [m for m in identity.fingerprinted_modules()
+         if identity.module_file(m) != Path(importlib.util.find_spec(m).origin)]
+print(json.dumps({"heavy": heavy, "wrong": wrong}))
+"""
+
+
+def test_the_code_identity_finds_its_modules_without_importing_them():
+    """Read off the folders: a fresh process pays neither the solvers' nor POT's
+    imports for it, and each file is the one Python would import."""
+    out = subprocess.run([sys.executable, "-c", IDENTITY_ALONE], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert json.loads(out.stdout) == {"heavy": [], "wrong": []}
 
 
 def test_editing_a_module_on_a_runs_path_changes_the_code_identity(tmp_path, monkeypatch):
