@@ -29,7 +29,6 @@ from mpe3d.harness.tracking.records import RunRecord
 BLAS_THREADS = 1
 
 
-
 def pipeline(name: str) -> Pipeline:
     """What the ``pipeline`` key's value ``name`` runs, imported when first asked
     for: the colmap pipeline brings pycolmap and POT, which a run of the others

@@ -33,8 +33,6 @@ class Fit(NamedTuple):
 REPROJECTION_LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 
 
-
-
 def one_blas_thread(func):
     """Run ``func`` on one BLAS thread: its matrices are small (3x3 blocks, a
     K*6 camera system), where threads cost more than they give (backyard, 100
@@ -72,9 +70,11 @@ class _Structure:
         self.cols = np.concatenate([pv * tracks.view[:, None] + np.arange(pv),
                                     np.broadcast_to(K * pv + np.arange(ns), (len(tracks.view), ns))],
                                    axis=1)  # (T, pv + ns)
-        # each (observation, axis) gives the c entries of row 3 * point + axis
-        # the observations grouped by point, and where each point's begin
+        # the observations grouped by point (their points and camera columns in
+        # that order, fixed for every step) and where each point's begin
         self.by_point = np.argsort(tracks.point, kind="stable")
+        self.point_by_point = tracks.point[self.by_point]
+        self.cols_by_point = self.cols[self.by_point]
         self.point_starts = np.concatenate(
             [[0], np.cumsum(np.bincount(tracks.point, minlength=tracks.n_points))])
         # a view's observations share their camera columns: its block of the
@@ -166,14 +166,14 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     return Fit(X, cameras, np.array(history), converged)
 
 
-def _schur_term(U_damped, W, structure, point):
+def _schur_term(U_damped, W, structure):
     """sum_i W_i^T U_i^-1 W_i = Y^T Y, with Y the stack of U_i^-1/2 W_i, by
     the compiled pass over each point's pairs of observations
     (:func:`mpe3d.solvers.kernels.schur_products`)."""
     values, vectors = np.linalg.eigh(U_damped)
     root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
-    Y = np.matmul(root[point[structure.by_point]], W[structure.by_point])  # (T, 3, c), by point
-    return schur_products(Y, structure.cols[structure.by_point], structure.point_starts, structure.size)
+    Y = np.matmul(root[structure.point_by_point], W[structure.by_point])  # (T, 3, c), by point
+    return schur_products(Y, structure.cols_by_point, structure.point_starts, structure.size)
 
 
 def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
@@ -189,7 +189,7 @@ def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
         U_inv = np.linalg.inv(U_damped)
     except np.linalg.LinAlgError:
         return None
-    S = V - _schur_term(U_damped, W, structure, point) if structure.size else V
+    S = V - _schur_term(U_damped, W, structure) if structure.size else V
     S[np.diag_indices_from(S)] += lam * D_c
     Ug = np.einsum("nij,nj->ni", U_inv, g_x)
     rhs = g_c - np.bincount(structure.cols.ravel(), minlength=structure.size,
