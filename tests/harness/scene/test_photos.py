@@ -1,0 +1,31 @@
+"""The photo renderer against the first one (benchmarks/render.py's reference): same bytes."""
+import importlib.util
+
+import numpy as np
+
+from mpe3d.harness.scene import photos, shapes
+from tests.helpers import REPO
+
+
+def _reference():
+    spec = importlib.util.spec_from_file_location("render_benchmark", REPO / "benchmarks" / "render.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_compiled_value_noise_is_the_array_version_to_the_bit(rng):
+    points = rng.uniform(-3.0, 3.0, size=(20_000, 3))  # negative cells too: the hash wraps
+    for seed in (0, 5):
+        assert np.array_equal(photos.value_noise(points, seed), _reference().reference_noise(points, seed))
+
+
+def test_photos_are_the_bytes_of_casting_every_ray():
+    """Only rays inside the box round the projected mesh are cast; the photos
+    (close and far views, a camera whose box crops the image) do not change."""
+    mesh = shapes.load_shape("chair")
+    for distance in (1.5, 0.75):  # 0.75: the chair overfills the photo
+        cameras = photos.spiral_cameras(4, size=64, distance=distance)
+        got = photos.render(mesh, cameras, seed=1)
+        assert np.array_equal(got, _reference().reference_render(mesh, cameras, seed=1))
+        assert np.count_nonzero(got) > 0.1 * got.size
