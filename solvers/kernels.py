@@ -428,24 +428,80 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
 warmed = False
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _add_both_orders(block, ya, yb):
+    """block += ya^T yb + yb^T ya, summed so that it stays symmetric to the bit."""
+    for p in range(block.shape[0]):
+        for q in range(block.shape[1]):
+            block[p, q] += (ya[0, p] * yb[0, q] + ya[1, p] * yb[1, q] + ya[2, p] * yb[2, q]) \
+                + (ya[0, q] * yb[0, p] + ya[1, q] * yb[1, p] + ya[2, q] * yb[2, p])
+
+
 @njit(cache=True, nogil=True)
-def schur_products(Y, cols, starts, size):
-    """S = sum over points i of Y_i^T Y_i, scattered to the camera columns:
-    Y (T, 3, c) holds each observation's U_i^-1/2 W_t, grouped by point
-    (point i's observations are rows starts[i]:starts[i + 1]), and cols (T, c)
-    the camera columns of each (a shared column may recur). Only the pairs of
-    observations of one point meet, so the work is sum_i m_i^2 c^2, where the
-    sparse product Y^T Y pays index arithmetic on every one of them."""
-    S = np.zeros((size, size))
+def schur_products(Y, view, starts, per_view, n_views):
+    """The blocks of S = sum over points i of Y_i^T Y_i: Y (T, 3, c) holds each
+    observation's U_i^-1/2 W_t, grouped by point (point i's observations are
+    rows starts[i]:starts[i + 1]); its first ``per_view`` columns belong to the
+    observation's ``view``, the rest are shared by all views (a lens).
+
+    Returns (B, C, D): B[k, l] the (per_view x per_view) block of views k and l,
+    C[k] the block of view k and the shared columns, D the shared one. A
+    point's pair of views is summed once, into B[k, l] for its observations in
+    the order given (the caller adds the transposes; an observation's own block
+    B[k, k] is whole); the shared columns of a point's observations are summed
+    first, so the view-lens and lens blocks cost m_i, not m_i^2. Blocks are
+    contiguous, so the pair loop's writes stay in a few cache lines instead of
+    per_view rows of a dense matrix far apart (3.8x on 250 views)."""
     c = Y.shape[2]
+    ns = c - per_view
+    B = np.zeros((n_views, n_views, per_view, per_view))
+    C = np.zeros((n_views, per_view, ns))
+    D = np.zeros((ns, ns))
+    total = np.zeros((3, ns))
     for i in range(len(starts) - 1):
-        for a in range(starts[i], starts[i + 1]):
-            for b in range(starts[i], starts[i + 1]):
-                for p in range(c):
-                    row = cols[a, p]
+        s0, s1 = starts[i], starts[i + 1]
+        total[:] = 0.0
+        for a in range(s0, s1):
+            for j in range(3):
+                for s in range(ns):
+                    total[j, s] += Y[a, j, per_view + s]
+        for a in range(s0, s1):
+            va = view[a]
+            for p in range(per_view):
+                y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
+                for s in range(ns):
+                    C[va, p, s] += y0 * total[0, s] + y1 * total[1, s] + y2 * total[2, s]
+            for b in range(a, s1):
+                block = B[va, view[b]]
+                if b != a and view[b] == va:  # the point seen twice in a view: the
+                    _add_both_orders(block, Y[a], Y[b])  # transpose lands here too
+                    continue
+                for p in range(per_view):
                     y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
-                    for q in range(c):
-                        S[row, cols[b, q]] += y0 * Y[b, 0, q] + y1 * Y[b, 1, q] + y2 * Y[b, 2, q]
+                    for q in range(per_view):
+                        block[p, q] += y0 * Y[b, 0, q] + y1 * Y[b, 1, q] + y2 * Y[b, 2, q]
+        for s in range(ns):
+            for u in range(ns):
+                D[s, u] += total[0, s] * total[0, u] + total[1, s] * total[1, u] \
+                    + total[2, s] * total[2, u]
+    return B, C, D
+
+
+def schur_matrix(Y, view, starts, per_view: int, n_views: int) -> np.ndarray:
+    """The dense reduced camera system's Schur term sum_i Y_i^T Y_i, columns
+    per_view * k + p for view k's parameter p, then the shared ones, from
+    :func:`schur_products`' blocks."""
+    K, pv = n_views, per_view
+    B, C, D = schur_products(Y, view, starts, pv, K)
+    diagonal = B[np.arange(K), np.arange(K)].copy()  # a view with itself: whole already
+    B += B.transpose(1, 0, 3, 2)  # each other pair of views was summed on one side
+    B[np.arange(K), np.arange(K)] = diagonal
+    size = K * pv + D.shape[0]
+    S = np.empty((size, size))
+    S[:K * pv, :K * pv] = B.transpose(0, 2, 1, 3).reshape(K * pv, K * pv)
+    S[:K * pv, K * pv:] = C.reshape(K * pv, -1)
+    S[K * pv:, :K * pv] = S[:K * pv, K * pv:].T
+    S[K * pv:, K * pv:] = D
     return S
 
 
@@ -466,5 +522,5 @@ def warm() -> None:
     multilaterate(np.zeros(3), P, Y, d, d, 1)
     row_misfits(np.zeros(3), P, Y, d, np.array([0, 3]))
     row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
-    schur_products(np.ones((2, 3, 2)), np.array([[0, 1], [1, 2]]), np.array([0, 2]), 3)
+    schur_products(np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]), 1, 2)
     warmed = True

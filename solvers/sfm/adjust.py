@@ -14,7 +14,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
-from mpe3d.solvers.kernels import schur_products
+from mpe3d.solvers.kernels import schur_matrix
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
 from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, rms
@@ -70,11 +70,13 @@ class _Structure:
         self.cols = np.concatenate([pv * tracks.view[:, None] + np.arange(pv),
                                     np.broadcast_to(K * pv + np.arange(ns), (len(tracks.view), ns))],
                                    axis=1)  # (T, pv + ns)
-        # the observations grouped by point (their points and camera columns in
-        # that order, fixed for every step) and where each point's begin
-        self.by_point = np.argsort(tracks.point, kind="stable")
+        # the observations grouped by point, each point's by view (so the Schur
+        # kernel fills the upper blocks), their points and views in that order,
+        # fixed for every step, and where each point's begin
+        self.by_point = np.lexsort((tracks.view, tracks.point))
         self.point_by_point = tracks.point[self.by_point]
-        self.cols_by_point = self.cols[self.by_point]
+        self.view_by_point = tracks.view[self.by_point]
+        self.n_views, self.per_view = K, pv
         self.point_starts = np.concatenate(
             [[0], np.cumsum(np.bincount(tracks.point, minlength=tracks.n_points))])
         # a view's observations share their camera columns: its block of the
@@ -169,11 +171,12 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
 def _schur_term(U_damped, W, structure):
     """sum_i W_i^T U_i^-1 W_i = Y^T Y, with Y the stack of U_i^-1/2 W_i, by
     the compiled pass over each point's pairs of observations
-    (:func:`mpe3d.solvers.kernels.schur_products`)."""
+    (:func:`mpe3d.solvers.kernels.schur_matrix`)."""
     values, vectors = np.linalg.eigh(U_damped)
     root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
     Y = np.matmul(root[structure.point_by_point], W[structure.by_point])  # (T, 3, c), by point
-    return schur_products(Y, structure.cols_by_point, structure.point_starts, structure.size)
+    return schur_matrix(Y, structure.view_by_point, structure.point_starts, structure.per_view,
+                        structure.n_views)
 
 
 def _damped_step(U, V, W, g_x, g_c, lam, structure, point):

@@ -108,12 +108,14 @@ def test_grouped_products_equal_the_per_row_ones(rng):
     assert np.allclose(gram_by_group(Y, group, 5), [Y[group == g].T @ Y[group == g] for g in range(5)])
 
 
-def test_the_schur_products_are_the_sparse_stack_s_gram_matrix(rng):
+def test_the_schur_matrix_is_the_sparse_stack_s_gram_matrix(rng):
     """S = Y^T Y for Y stacking each point's 3 rows over its observations'
-    camera columns; a shared column (a lens for all views) recurs in a row."""
+    camera columns; a shared column (a lens for all views) recurs in a row, and
+    a point seen twice in one view (a conflicting track) meets itself there."""
     n_points, n_views, per_view = 30, 6, 4
     point = np.sort(rng.integers(0, n_points, size=120))
-    view = rng.integers(0, n_views, size=120)
+    view = rng.integers(0, n_views, size=120)  # in any order within a point, repeats too
+    assert any(len(set(view[point == i])) < np.sum(point == i) for i in range(n_points))
     cols = np.c_[per_view * view[:, None] + np.arange(per_view), np.full(120, n_views * per_view)]
     size = n_views * per_view + 1
     Y = rng.normal(size=(120, 3, per_view + 1))
@@ -122,7 +124,9 @@ def test_the_schur_products_are_the_sparse_stack_s_gram_matrix(rng):
         for a in range(3):
             np.add.at(dense[3 * point[t] + a], cols[t], Y[t, a])
     starts = np.concatenate([[0], np.cumsum(np.bincount(point, minlength=n_points))])
-    assert np.allclose(kernels.schur_products(Y, cols, starts, size), dense.T @ dense, rtol=1e-12, atol=1e-12)
+    S = kernels.schur_matrix(Y, view, starts, per_view, n_views)
+    assert np.allclose(S, dense.T @ dense, rtol=1e-12, atol=1e-12)
+    assert np.array_equal(S, S.T)  # bit for bit: Cholesky reads one triangle
 
 
 def test_the_fixed_elimination_is_the_same_in_blocks(monkeypatch):
