@@ -33,7 +33,7 @@ from typing import Iterable, Iterator
 from mpe3d import plugins
 from mpe3d.errors import DiskFull, MpeError, StoreError
 from mpe3d.harness.experiment.config import BACKENDS, RunConfig
-from mpe3d.harness.experiment.execute import code_of, failed_record, run_record
+from mpe3d.harness.experiment.execute import code_of, expected_work, failed_record, run_record
 from mpe3d.harness.experiment.sweep import Sweep
 from mpe3d.harness.files import Reserve, SpaceMeter, human_bytes, same_device
 from mpe3d.harness.shutdown import EXIT_CODE, GRACE_S, Shutdown, kill_descendants
@@ -306,7 +306,10 @@ class _Loop:
         self.artifacts, self.reporter = artifacts, reporter
         self.owner = Owner.current()
         self.plans = plans
-        self.queue = deque(_Task(plan, config) for plan in plans for config in plan.todo)
+        # longest first (a stable sort: ties keep the sweep's order), so that the
+        # last runs to finish are short ones and no worker idles at the end
+        self.queue = deque(sorted((_Task(plan, config) for plan in plans for config in plan.todo),
+                                  key=lambda task: -expected_work(task.config)))
         self.in_flight: dict[cf.Future, _Task] = {}
         self.waiting: list[_Task] = []  # claimed by another live sweep
         self.open_parents = [p.parent_id for p in plans if p.parent_id]

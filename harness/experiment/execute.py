@@ -44,6 +44,22 @@ def pipeline(name: str) -> Pipeline:
     return chosen
 
 
+def expected_work(config: RunConfig) -> float:
+    """A rough relative cost of a run, for ordering a sweep's runs longest
+    first, so that no worker idles while the last long run finishes: a colmap
+    run renders, matches and adjusts ``images.count`` photos (250: minutes); a
+    points run's stress is K views of N^2 pairs, plus the N^2 EMD (1024
+    points, 5 views: about a second); a tracks run solves a real data set
+    (seconds). Only the order matters: the runs' results do not depend on it."""
+    pipeline_name = config["pipeline"]
+    if pipeline_name == "colmap":
+        return 0.5 * config["images.count"]
+    if pipeline_name == "tracks":
+        return 2.0
+    n = config["points"] / 1024.0
+    return n * n * (config["views"] + 1)
+
+
 def run(config: RunConfig) -> RunResult:
     """Run ``config``; the solver only ever sees the observations."""
     check_run_memory(config)  # before sampling: refuse what cannot fit, in one line

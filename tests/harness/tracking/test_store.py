@@ -94,6 +94,15 @@ def test_sweep_logs_every_run_finished(tracked):
             assert np.array_equal(np.loadtxt(local), [m.value for m in logged])
 
 
+def test_runs_start_longest_first(tracked):
+    """The 4-view runs are claimed before the 3-view ones (the sweep lists them
+    mixed), so that the last runs to finish are short ones."""
+    folder, _, _ = tracked
+    kids, _ = children(MlflowClient(f"sqlite:///{folder}/mlflow.db"), "tiny")
+    views = [int(r.data.params["views"]) for r in sorted(kids, key=lambda r: r.info.start_time)]
+    assert views == sorted(views, reverse=True) and len(set(views)) == 2
+
+
 def test_a_long_stress_history_is_charted_at_log_spaced_steps():
     """MLflow's chart gets at most CHART_STEPS steps (the whole history goes
     to stress_history.csv): the first and last always, dense at the start."""
