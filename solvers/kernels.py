@@ -491,16 +491,31 @@ def schur_matrix(Y, view, starts, per_view: int, n_views: int) -> np.ndarray:
     """The dense reduced camera system's Schur term sum_i Y_i^T Y_i, columns
     per_view * k + p for view k's parameter p, then the shared ones, from
     :func:`schur_products`' blocks."""
-    K, pv = n_views, per_view
-    B, C, D = schur_products(Y, view, starts, pv, K)
-    diagonal = B[np.arange(K), np.arange(K)].copy()  # a view with itself: whole already
-    B += B.transpose(1, 0, 3, 2)  # each other pair of views was summed on one side
-    B[np.arange(K), np.arange(K)] = diagonal
-    size = K * pv + D.shape[0]
+    return _dense_from_blocks(*schur_products(Y, view, starts, per_view, n_views))
+
+
+@njit(cache=True, nogil=True)
+def _dense_from_blocks(B, C, D):
+    """The symmetric matrix of :func:`schur_products`' blocks in one pass: each
+    pair of views was summed on one side (B[k, l] or B[l, k]), so its block is
+    their sum, the same bits on both sides of the diagonal; a view's own block
+    is whole."""
+    K, pv, ns = B.shape[0], B.shape[2], D.shape[0]
+    size = K * pv + ns
     S = np.empty((size, size))
-    S[:K * pv, :K * pv] = B.transpose(0, 2, 1, 3).reshape(K * pv, K * pv)
-    S[:K * pv, K * pv:] = C.reshape(K * pv, -1)
-    S[K * pv:, :K * pv] = S[:K * pv, K * pv:].T
+    for k in range(K):
+        for p in range(pv):
+            row = S[k * pv + p]
+            for q in range(pv):
+                row[k * pv + q] = B[k, k, p, q]
+            for l in range(k + 1, K):
+                for q in range(pv):
+                    value = B[k, l, p, q] + B[l, k, q, p]
+                    row[l * pv + q] = value
+                    S[l * pv + q, k * pv + p] = value
+            for s in range(ns):
+                row[K * pv + s] = C[k, p, s]
+                S[K * pv + s, k * pv + p] = C[k, p, s]
     S[K * pv:, K * pv:] = D
     return S
 
