@@ -76,7 +76,7 @@ class _Structure:
         self.by_point = np.lexsort((tracks.view, tracks.point))
         self.point_by_point = tracks.point[self.by_point]
         self.view_by_point = tracks.view[self.by_point]
-        self.n_views, self.per_view = K, pv
+        self.blocks = np.empty((K, K, pv, pv))  # the Schur kernel's workspace, every step
         self.point_starts = np.concatenate(
             [[0], np.cumsum(np.bincount(tracks.point, minlength=tracks.n_points))])
         # a view's observations share their camera columns: its block of the
@@ -175,8 +175,7 @@ def _schur_term(U_damped, W, structure):
     values, vectors = np.linalg.eigh(U_damped)
     root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
     Y = np.matmul(root[structure.point_by_point], W[structure.by_point])  # (T, 3, c), by point
-    return schur_matrix(Y, structure.view_by_point, structure.point_starts, structure.per_view,
-                        structure.n_views)
+    return schur_matrix(Y, structure.view_by_point, structure.point_starts, structure.blocks)
 
 
 def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
@@ -200,7 +199,9 @@ def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
     if not (np.all(np.isfinite(S)) and np.all(np.isfinite(rhs))):
         return None
     try:
-        dc = -cho_solve(cho_factor(S), rhs) if len(rhs) else rhs  # known cameras: none
+        # S is checked finite above and not used again: factorised in place
+        dc = -cho_solve(cho_factor(S, overwrite_a=True, check_finite=False), rhs, check_finite=False) \
+            if len(rhs) else rhs  # known cameras: none
     except np.linalg.LinAlgError:
         return None
     coupling = sum_by(point, np.einsum("tic,tc->ti", W, dc[structure.cols]), len(U))
