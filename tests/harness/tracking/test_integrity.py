@@ -76,6 +76,27 @@ print(json.dumps({"loaded": sorted(m for m in sys.modules if m.split(".")[0] == 
 """
 
 
+def test_the_parse_cache_gives_the_identity_a_fresh_parse_gives(tmp_path):
+    """A fresh process reads its modules' parses from the cache, keyed by their
+    bytes: the same identity as parsing, and a damaged cache is parsed anew."""
+    script = "from mpe3d.harness.tracking.identity import code_identity; print(code_identity())"
+    env = {**os.environ, "XDG_CACHE_HOME": str(tmp_path)}
+
+    def identity():
+        out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+        assert out.returncode == 0, out.stderr
+        return out.stdout.strip()
+
+    assert identity() == code_identity()  # parsed, then cached
+    (cache,) = (tmp_path / "mpe3d").glob("identity-*.json")
+    entries = json.loads(cache.read_text())
+    assert any(key.startswith("mpe3d.solvers.refine:") for key in entries)
+    assert identity() == code_identity()  # from the cache
+    cache.write_text("{not json")
+    assert identity() == code_identity()
+    assert json.loads(cache.read_text()).keys() == entries.keys()  # written whole again
+
+
 def test_every_module_a_run_loads_is_in_the_code_identity():
     """One run of each pipeline, in a fresh process as a worker runs it."""
     out = subprocess.run([sys.executable, "-c", RUN_BOTH_PIPELINES], capture_output=True,
