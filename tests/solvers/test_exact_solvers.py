@@ -92,34 +92,6 @@ def test_rejection_finds_the_wrong_matches_and_leaves_clean_views_alone():
     assert solvers.solve("refine", clean, random_state=0).info["rejected"] == 0
 
 
-def _perspective_distances(distance=0.9, n=300, views=8):
-    """The pixel distances of pinhole photos taken close up: no orthographic
-    projection fits them, however many rows are rejected."""
-    from mpe3d.harness.scene.photos import spiral_cameras
-
-    rng = np.random.default_rng(0)
-    X = 0.25 * rng.normal(size=(n, 3))
-    cameras = spiral_cameras(views, distance=distance, turns=0.25)
-    out = []
-    for R, t in zip(cameras.rotations, cameras.translations):
-        x = X @ R.T + t
-        xy = cameras.focal * x[:, :2] / x[:, 2:] + 0.3 * rng.normal(size=(n, 2))
-        out.append(View(ids=np.arange(n), distances=np.linalg.norm(xy[:, None] - xy[None], axis=2)))
-    return Observations(n_points=n, views=tuple(out))
-
-
-def test_rejection_rounds_stop_at_model_misfit(monkeypatch):
-    """Each round rejects the tail of a smooth misfit and keeps most of the
-    stress: the misfit rule ends the rounds, which without it go on rejecting more."""
-    obs = _perspective_distances()
-    rec = solvers.solve("refine", obs, random_state=0)
-    assert "model misfit" in rec.termination
-    monkeypatch.setattr("mpe3d.solvers.refine.MISFIT_SHARE", np.inf)
-    chasing = solvers.solve("refine", obs, random_state=0)
-    assert "model misfit" not in chasing.termination
-    assert chasing.iterations > rec.iterations and chasing.info["rejected"] > rec.info["rejected"]
-
-
 def config_moved(config, scene):
     """How many wrong matches observe() made for ``config``."""
     from mpe3d.harness.scene.observe import observe, seed_streams
