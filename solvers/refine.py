@@ -41,9 +41,6 @@ _REWEIGHTS = 3  # rounds of reweighting a weak point's rows by their misfits
 _SCOUTS = 64
 # The rounds end when fewer observations than this share change side.
 _SETTLED = 1e-3
-# ... or when a round left more than this share of the stress the round before
-# kept: see _rejecting's misfit rule.
-MISFIT_SHARE = 0.5
 OUTLIERS = ("reject", "keep")
 
 
@@ -170,8 +167,7 @@ def solve_refine(observations: Observations, *, random_state=None,
     rejected = 0
     if outliers == "reject" and value > _NOISY * total and not stress.sparse:
         X, P, value, history, iterations, reason, rejected = _rejecting(
-            observations, stress, X, P, value, history, iterations, max_iter, max(tol, REJECTION_TOL),
-            total)
+            observations, stress, X, P, history, iterations, max_iter, max(tol, REJECTION_TOL), total)
         termination = reason or termination
     exact = iterations == 0 and used_start == "factorize" and value == f0
     if exact and (loss == "l2" or exact_start):
@@ -186,23 +182,9 @@ def solve_refine(observations: Observations, *, random_state=None,
                                 "start_stress": start.stress, "rejected": rejected})
 
 
-def _rejecting(observations, stress, X, P, value, history, iterations, max_iter, tol, total):
+def _rejecting(observations, stress, X, P, history, iterations, max_iter, tol, total):
     """Reject the observations whose rows misfit, solve again, repeat until the
     rejected set is stable: the result, and how many observations it rejects.
-
-    **Misfit rule.** A round also ends the rounds when the stress it keeps is
-    more than MISFIT_SHARE of what the round before kept. Rejecting corrupted
-    rows or wrong matches removes most of the stress at once (they are far
-    beyond the line; the next round then changes almost nothing); when the
-    views do not follow the camera model (orthographic projections of
-    perspective photos), the misfit is spread over every row, each round
-    rejects the tail of a smooth distribution, the line moves in with it, and
-    the stress falls by a constant share a round without end. Those rounds
-    are model misfit, not outliers, and the reprojection objective's pinhole
-    is the answer to it (``objective="reprojection"``), not more rejections.
-    (COLMAP's 250-photo tracks: the kept stress went 2.5e8, 6.6e7, 4.0e7,
-    3.5e7, 2.9e7, 2.6e7, 2.3e7 over the rounds, 1064 to 1634 rows rejected,
-    every round at its iteration cap; the rule stops after the second.)
 
     Each round solves without the rejected observations (alpha 0), which fixes
     the projections and every point still kept in two views. The points that
@@ -213,13 +195,8 @@ def _rejecting(observations, stress, X, P, value, history, iterations, max_iter,
     again there, and is taken back in the next round.
     """
     rejected = [np.zeros(len(ids), dtype=bool) for ids in stress.ids]
-    kept_before, value, termination = value, None, None
+    value, termination = None, None
     for _ in range(_REJECTION_ROUNDS):
-        if value is not None and value > MISFIT_SHARE * kept_before:  # the misfit rule
-            termination = (f"{termination}; rejection rounds stopped: the last kept "
-                           f"{value / kept_before:.2f} of the stress before it (model misfit)")
-            break
-        kept_before = value if value is not None else kept_before
         now = _misfits(stress, X, P, rejected, total)
         changed = sum(int(np.sum(a != b)) for a, b in zip(now, rejected))
         if changed == 0 or (value is not None and changed <= _SETTLED * sum(map(len, now))):
