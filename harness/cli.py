@@ -735,7 +735,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="drop observations at exactly X,Y (e.g. -1,-1: a tracker's 'not seen')")
     rec.add_argument("--outlier-threshold", type=float, default=20.0, metavar="SIGMAS",
                      help="reprojection: drop observations beyond this many robust sigmas as "
-                     "wrong matches (default 20; inf keeps all)")
+                     "wrong matches (default 20; inf keeps all, and turns refine's rejection "
+                     "rounds off for the stress)")
     rec.add_argument("--solver", default="refine", help="stress solver: refine (default), "
                      "factorize or sgd")
     rec.add_argument("--loss", default="l2", choices=("l2", "huber", "soft_l1", "cauchy"),

@@ -8,6 +8,8 @@ import time
 import urllib.request
 from pathlib import Path
 
+import numpy as np
+
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
 
@@ -133,3 +135,20 @@ def short_track_set(folder, seed: int = 0, n_points: int = 544, n_views: int = 5
         folder / "points.csv", index=False)
     np.save(folder / "cameras.npy", P)
     return folder
+
+
+def close_up_keypoints(n=300, views=8, distance=0.9, orthographic=False):
+    """Keypoints of a cloud from cameras close to it: pinhole photos no
+    orthographic projection fits (or, ``orthographic``, their weak twin)."""
+    from mpe3d.harness.scene.photos import spiral_cameras
+
+    rng = np.random.default_rng(0)
+    X = 0.25 * rng.normal(size=(n, 3))
+    cameras = spiral_cameras(views, distance=distance, turns=0.25)
+    out = []
+    for R, t in zip(cameras.rotations, cameras.translations):
+        x = X @ R.T + t
+        depth = x[:, 2:] if not orthographic else np.full((n, 1), float(np.mean(x[:, 2])))
+        xy = cameras.focal * x[:, :2] / depth + 200.0 + 0.3 * rng.normal(size=(n, 2))
+        out.append({"ids": np.arange(n), "xy": xy})
+    return out

@@ -31,9 +31,9 @@ from mpe3d.harness.experiment.result import RunResult, short_number
 from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.scene.visibility import SELF_HIT_TOLERANCE
-from mpe3d.solvers.sfm.bundle import median_radii
+from mpe3d.solvers.sfm.bundle import AUTO_RATIO, OUTLIER_THRESHOLD, median_radii
 
-TRACK_METHODS = ("bundle", "sgd", "refine")  # what COLMAP's tracks are fed to
+TRACK_METHODS = ("bundle", "sgd", "refine")  # what COLMAP's tracks are fed to, in this order
 MIN_ALIGNED = 3  # registered photos (or shared tracks) a similarity needs
 
 
@@ -88,10 +88,17 @@ def tied_views(views: list[dict]) -> list[dict]:
     return [v for v, label in zip(views, labels) if label == largest]
 
 
-def _fed_to(method: str, views: list[dict], principal_point):
+def _fed_to(method: str, views: list[dict], principal_point, pinhole: bool = False):
     """mpe3d's cloud of COLMAP's tracks (ids = track index) by ``method``: the
     solve of :func:`~mpe3d.harness.userdata.reconstruct.reconstruct` on views
-    made here, without the checks that a user's files need."""
+    made here, without the checks that a user's files need.
+
+    ``pinhole``: bundle adjustment found that a pinhole explains the tracks
+    clearly better than weak perspective (:func:`model_misfit`). The stress's
+    orthographic projections then misfit every row a little, and refine's
+    rejection rounds would chase that misfit's tail round after round (each
+    at its iteration cap) instead of wrong matches, which the pinhole's fit
+    has already dealt with: they are turned off (``outlier_threshold=inf``)."""
     from mpe3d.harness.userdata.reconstruct import Problem, observations_from, solve_problem
 
     observations, ids = observations_from(views)
@@ -100,7 +107,18 @@ def _fed_to(method: str, views: list[dict], principal_point):
         return solve_problem(Problem(observations, ids, "refine", "l2", 0, objective="reprojection",
                              camera="perspective", principal_point=tuple(principal_point),
                              view_names=names))
-    return solve_problem(Problem(observations, ids, method, "l2", 0, objective="stress", view_names=names))
+    return solve_problem(Problem(observations, ids, method, "l2", 0, objective="stress", view_names=names,
+                                 outlier_threshold=np.inf if pinhole else OUTLIER_THRESHOLD))
+
+
+def model_misfit(bundle_report: dict) -> bool:
+    """Whether bundle adjustment's pinhole explains the keypoints clearly better
+    than the scaled (weak-perspective) camera: its RMS below AUTO_RATIO of the
+    scaled fit's on the same observations (camera="auto"'s test, on the RMS
+    both fits report rather than the median)."""
+    by_camera = bundle_report.get("rms_px_by_camera", {})
+    pinhole, scaled = by_camera.get("perspective"), by_camera.get("scaled")
+    return pinhole is not None and scaled is not None and pinhole < AUTO_RATIO * scaled
 
 
 def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[dict, list[str]]:
@@ -118,14 +136,18 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[di
     colmap_points = _apply(to_mesh, sfm.points)
     views = tied_views(views)
     out["tracks_photos_tied"] = len(views)
+    pinhole = False
     for method in TRACK_METHODS:
         start = time.perf_counter()
         try:
-            result = _fed_to(method, views, principal_point)
+            result = _fed_to(method, views, principal_point, pinhole)
         except MpeError as exc:
             notes.append(f"tracks -> {method}: {exc}")
             continue
         out[f"tracks_{method}_s"] = time.perf_counter() - start
+        if method == "bundle":
+            pinhole = model_misfit(result.report)
+            out["tracks_model_misfit"] = float(pinhole)
         placed = ~np.isin(result.ids, result.unplaced)
         out[f"tracks_{method}_unplaced"] = len(result.unplaced)
         # in median radii: bundle adjustment leaves unplaced what stands beyond

@@ -363,7 +363,10 @@ def solve_problem(problem: Problem) -> Result:
             tracks = bundle.Tracks.from_observations(problem.observations)
             fit = _solve_reprojection(problem, tracks)
         else:
-            options = {"loss": problem.loss} if problem.solver == "refine" else {}
+            # refine's rejection rounds are its outlier test: inf keeps every observation
+            options = {"loss": problem.loss,
+                       "outliers": "reject" if np.isfinite(problem.outlier_threshold) else "keep"} \
+                if problem.solver == "refine" else {}
             fit = solvers.solve(problem.solver, problem.observations,
                                 random_state=problem.random_state, **options)
     runtime = time.perf_counter() - start
@@ -428,7 +431,8 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
         Observations at exactly (x, y) are markers for "not seen" and dropped.
     outlier_threshold : float, default 20
         Reprojection: observations beyond this many robust sigmas are taken for
-        wrong matches and dropped (listed in the report); ``inf`` keeps all.
+        wrong matches and dropped (listed in the report); ``inf`` keeps all,
+        and with the stress objective turns refine's rejection rounds off.
     principal_point : None or (x, y), default None
         The pinhole camera's principal point in pixels (the image centre);
         None takes the centre of the keypoints' bounding box.
@@ -459,6 +463,7 @@ def _stress_result(problem: Problem, rec, runtime: float, warnings: list[str]) -
         "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist()},
         "projections": projections.tolist(),
         "iterations": int(rec.iterations), "termination": rec.termination,
+        "rejected": int(rec.info.get("rejected", 0)),  # refine's rows taken for outliers
         "runtime_s": runtime, "code": code_identity(),
     }
     return Result(points=rec.points, ids=ids, projections=projections, objective="stress",

@@ -6,11 +6,12 @@ import pytest
 from mpe3d.errors import MpeError
 from mpe3d.harness.cli import main
 from mpe3d.harness.experiment import colmap_sfm
-from mpe3d.harness.experiment.colmap_pipeline import seen_in_photos
+from mpe3d.harness.experiment.colmap_pipeline import model_misfit, seen_in_photos
 from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.userdata import colmap_model
-from mpe3d.harness.userdata.reconstruct import ViewCamera
+from mpe3d.harness.userdata.reconstruct import ViewCamera, reconstruct
 from mpe3d.reports.claims import FAILS, HOLDS, colmap_fails_below
+from tests.helpers import close_up_keypoints
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -223,3 +224,12 @@ def test_the_tracks_feed_mpe3d_the_largest_group_of_photos_they_tie_together():
     views += [{"name": f"b{k}", "ids": np.arange(20, 30), "xy": np.zeros((10, 2))} for k in range(2)]
     views.insert(1, {"name": "c", "ids": np.array([0, 1, 20, 40]), "xy": np.zeros((4, 2))})
     assert [v["name"] for v in tied_views(views)] == ["a0", "a1", "a2"]
+
+
+def test_model_misfit_is_what_the_pinhole_explains_and_weak_perspective_does_not():
+    """COLMAP's tracks go to refine without its rejection rounds when bundle
+    adjustment's pinhole fits them clearly better than weak perspective."""
+    for orthographic, misfit in ((False, True), (True, False)):
+        fit = reconstruct(close_up_keypoints(orthographic=orthographic), objective="reprojection",
+                          camera="perspective", principal_point=(200.0, 200.0))
+        assert model_misfit(fit.report) is misfit

@@ -14,7 +14,7 @@ from mpe3d.harness.scene.metrics import roa
 from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
 from mpe3d.harness.userdata.formats import write_cloud
 from mpe3d.harness.userdata.reconstruct import reconstruct
-from tests.helpers import run_cli
+from tests.helpers import close_up_keypoints, run_cli
 
 
 def scene(observe_as="coordinates", points=200):
@@ -232,3 +232,13 @@ def test_points_seen_once_are_reported_by_id(tmp_path):
     assert (report["unplaced"]["count"], report["unplaced"]["ids"]) == (1, ["lone"])
     assert "mpe3d: warning: 1 points are seen in fewer than 2 views" in done.stderr
     assert "Traceback" not in done.stderr and "DegenerateWarning" not in done.stderr
+
+
+def test_an_infinite_outlier_threshold_turns_refine_s_rejection_rounds_off():
+    """The stress of pinhole photos misfits every row: refine's rounds reject the
+    misfit's tail; ``outlier_threshold=inf`` keeps every row, as for bundle adjustment."""
+    views = close_up_keypoints()
+    rounds = reconstruct(views, objective="stress", solver="refine")
+    kept = reconstruct(views, objective="stress", solver="refine", outlier_threshold=np.inf)
+    assert rounds.report["rejected"] > 0 and kept.report["rejected"] == 0
+    assert kept.report["iterations"] < rounds.report["iterations"]
