@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import least_squares
 
+from mpe3d.solvers import kernels
 from mpe3d.solvers.base import Interval, Observations, Reconstruction, register_solver
 from mpe3d.solvers.degenerate import check_geometry, warn
 from mpe3d.solvers.linalg import (
@@ -227,22 +228,18 @@ class AffineFit(NamedTuple):
 
 
 def affine_als(view, point, z, N: int, K: int, max_iter: int, tol: float) -> AffineFit:
-    """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares,
-    for the observations t = (view[t], point[t], z[t]) of N points in K views."""
+    """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares
+    (one compiled pass a sweep, :func:`kernels.affine_als`), from
+    :func:`_affine_start`, for the observations t = (view[t], point[t], z[t])
+    of N points in K views."""
     X = _affine_start(view, point, z, N, K)
-    everything = np.ones(len(z), dtype=bool)
     # A point seen once says nothing about the views: it fits any of them.
     informative = np.bincount(point, minlength=N)[point] >= 2
-    previous = float(np.finfo(float).max)
-    for iteration in range(1, max_iter + 1):  # noqa: B007 - the count is returned
-        L, t = fit_views(X, view, point, z, K, informative)
-        X = _fit_points(L, t, view, point, z, N, everything)
-        residual = np.einsum("tab,ta->tb", L[view], X[point]) + t[view] - z
-        rms = float(np.sqrt(np.mean(residual ** 2)))
-        if previous - rms <= tol * previous or rms <= 1e-14 * _scale(z):
-            break
-        previous = rms
-    return AffineFit(X, L, rms, iteration)
+    X, L, rms, sweeps = kernels.affine_als(
+        np.ascontiguousarray(view, dtype=np.int64), np.ascontiguousarray(point, dtype=np.int64),
+        np.ascontiguousarray(z, dtype=np.float64), np.ascontiguousarray(X, dtype=np.float64),
+        informative, K, max_iter, tol, 1e-14 * _scale(z))
+    return AffineFit(X, L, float(rms), int(sweeps))
 
 
 def _scale(z: np.ndarray) -> float:
@@ -371,7 +368,8 @@ def blindness(P: np.ndarray) -> float:
 def _variable(observations, images, max_iter, tol):
     """The variable setting (step 3), with a checked fallback: when noise lets the
     alternating sweeps drift to a cloud that all upgraded views see edge-on,
-    fewer sweeps are tried, and if none helps it is said."""
+    fewer sweeps are tried, and if none helps it is said. The last value says
+    whether a cloud passed the check."""
     view, point, z = stacked(observations, images)
     tried = []
     for sweeps in (max_iter,) + tuple(s for s in _FALLBACK_SWEEPS if s < max_iter):
@@ -379,18 +377,19 @@ def _variable(observations, images, max_iter, tol):
                                      observations.n_views, sweeps, tol)
         X, P = metric_upgrade(X, L)
         if blindness(P) >= _BLIND and elongation(X) <= _ELONGATED:
-            return X, P, rms, done
+            return X, P, rms, done, True
         tried.append((X, P, rms, done))
     # none passed: the least degenerate, said (seeing every direction first, then the roundest)
     X, P, rms, done = max(tried, key=lambda c: (blindness(c[1]) >= _BLIND, -elongation(c[0])))
     if blindness(P) >= _BLIND:
         warn(f"the cloud is {elongation(X):.3g} times longer than wide: the views, too noisy for "
-             "factorize, may not determine its long axis (refine starts from it and recovers)")
-        return X, P, rms, done
+             "factorize, may not determine its long axis (refine starts from the MDS start "
+             "instead on dense views)")
+        return X, P, rms, done, False
     warn(f"the upgraded views all but share a blind direction (blindness {blindness(P):.2g}): the "
          "cloud is not determined along it; the views are too noisy for factorize (refine "
-         "starts from it and recovers)")
-    return X, P, rms, done
+         "starts from the MDS start instead on dense views)")
+    return X, P, rms, done, False
 
 
 _PARAMETER_CONSTRAINTS = {
@@ -425,11 +424,12 @@ def solve_factorize(observations: Observations, *, random_state=None,
     if observations.fixed:
         X, _ = factorize_fixed(observations, images)
         P = np.asarray(observations.projections, dtype=float)
-        sweeps, termination = 0, "closed form"
+        sweeps, termination, settled = 0, "closed form", True
     else:
-        X, P, rms, sweeps = _variable(observations, images, max_iter, tol)
+        X, P, rms, sweeps, settled = _variable(observations, images, max_iter, tol)
         termination = f"affine factorisation, RMS residual {rms:.2e}"
     stress = Stress(observations).value(X, P)
     return Reconstruction(points=X, projections=P, stress=stress,
                           stress_history=np.array([stress]), iterations=0,
-                          termination=termination, info={"unplaced": unplaced, "als_sweeps": sweeps})
+                          termination=termination, info={"unplaced": unplaced, "als_sweeps": sweeps,
+                                "degenerate": not settled})

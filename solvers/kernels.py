@@ -425,6 +425,119 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
     return total, grad
 
 
+# A PSD matrix with det > this x trace^d is inverted directly, the rest by SVD
+# (the bound of linalg.pinv_psd).
+_WELL_CONDITIONED = 1e-8
+
+
+@njit(cache=True, nogil=True)
+def _pinv_psd3(M, out):
+    """out = pinv(M) for a symmetric PSD 3 x 3 M: the cofactor inverse where
+    det / trace^3 says it is well conditioned, numba's SVD pinv otherwise."""
+    c0 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]
+    c1 = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
+    c2 = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
+    det = M[0, 0] * c0 + M[0, 1] * c1 + M[0, 2] * c2
+    trace = M[0, 0] + M[1, 1] + M[2, 2]
+    if not det > _WELL_CONDITIONED * trace * trace * trace:
+        out[:] = np.linalg.pinv(M)
+        return
+    out[0, 0], out[1, 0], out[2, 0] = c0 / det, c1 / det, c2 / det
+    out[0, 1] = (M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]) / det
+    out[1, 1] = (M[0, 0] * M[2, 2] - M[0, 2] * M[2, 0]) / det
+    out[2, 1] = (M[0, 1] * M[2, 0] - M[0, 0] * M[2, 1]) / det
+    out[0, 2] = (M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]) / det
+    out[1, 2] = (M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]) / det
+    out[2, 2] = (M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]) / det
+
+
+@njit(cache=True, nogil=True)
+def _pinv_psd(M):
+    """pinv(M) for a small symmetric PSD M: LU inverse where well conditioned."""
+    d = M.shape[0]
+    if np.linalg.det(M) > _WELL_CONDITIONED * np.trace(M) ** d:
+        return np.linalg.inv(M)
+    return np.linalg.pinv(M)
+
+
+@njit(cache=True, nogil=True)
+def _fit_affine_views(X, view, point, z, informative, AtA, Atz, L, t):
+    """Each view's [L_k; t_k^T] from [x_i, 1] -> z_t over the informative
+    observations: one 4 x 4 least-squares system per view (zero if none)."""
+    AtA[:] = 0.0
+    Atz[:] = 0.0
+    a = np.ones(4)
+    for s in range(view.shape[0]):
+        if not informative[s]:
+            continue
+        k, i = view[s], point[s]
+        a[0], a[1], a[2] = X[i, 0], X[i, 1], X[i, 2]
+        for p in range(4):
+            for q in range(4):
+                AtA[k, p, q] += a[p] * a[q]
+            Atz[k, p, 0] += a[p] * z[s, 0]
+            Atz[k, p, 1] += a[p] * z[s, 1]
+    for k in range(AtA.shape[0]):
+        inverse = _pinv_psd(AtA[k])
+        for c in range(2):
+            for p in range(4):
+                value = inverse[p, 0] * Atz[k, 0, c] + inverse[p, 1] * Atz[k, 1, c] \
+                    + inverse[p, 2] * Atz[k, 2, c] + inverse[p, 3] * Atz[k, 3, c]
+                if p < 3:
+                    L[k, p, c] = value
+                else:
+                    t[k, c] = value
+
+
+@njit(cache=True, nogil=True)
+def _fit_affine_points(L, t, view, point, z, X, lhs, rhs):
+    """Each point from (sum L_k L_k^T) x_i = sum L_k (z_t - t_k) over its
+    observations: a 3 x 3 system per point (zero if it has none)."""
+    lhs[:] = 0.0
+    rhs[:] = 0.0
+    for s in range(view.shape[0]):
+        k, i = view[s], point[s]
+        r0, r1 = z[s, 0] - t[k, 0], z[s, 1] - t[k, 1]
+        for p in range(3):
+            rhs[i, p] += L[k, p, 0] * r0 + L[k, p, 1] * r1
+            for q in range(3):
+                lhs[i, p, q] += L[k, p, 0] * L[k, q, 0] + L[k, p, 1] * L[k, q, 1]
+    inverse = np.empty((3, 3))
+    for i in range(X.shape[0]):
+        _pinv_psd3(lhs[i], inverse)
+        for p in range(3):
+            X[i, p] = inverse[p, 0] * rhs[i, 0] + inverse[p, 1] * rhs[i, 1] + inverse[p, 2] * rhs[i, 2]
+
+
+@njit(cache=True, nogil=True)
+def affine_als(view, point, z, X, informative, n_views, max_iter, tol, floor):
+    """Alternating least squares for z_t ~ L_k^T x_i + t_k (observation t of
+    point i in view k) from the points X: views fitted to the informative
+    observations, then every point to its views, until the RMS residual
+    improves by at most ``tol`` of itself or falls to ``floor``. Returns the
+    points, the L_k (K, 3, 2), the RMS and the sweeps made."""
+    X = X.copy()
+    T = view.shape[0]
+    AtA, Atz = np.empty((n_views, 4, 4)), np.empty((n_views, 4, 2))
+    L, t = np.zeros((n_views, 3, 2)), np.zeros((n_views, 2))
+    lhs, rhs = np.empty((X.shape[0], 3, 3)), np.empty((X.shape[0], 3))
+    previous, rms, sweep = np.finfo(np.float64).max, 0.0, 0
+    for sweep in range(1, max_iter + 1):  # noqa: B007 - the count is returned
+        _fit_affine_views(X, view, point, z, informative, AtA, Atz, L, t)
+        _fit_affine_points(L, t, view, point, z, X, lhs, rhs)
+        squares = 0.0
+        for s in range(T):
+            k, i = view[s], point[s]
+            for c in range(2):
+                u = L[k, 0, c] * X[i, 0] + L[k, 1, c] * X[i, 1] + L[k, 2, c] * X[i, 2] + t[k, c] - z[s, c]
+                squares += u * u
+        rms = np.sqrt(squares / (2 * T))
+        if previous - rms <= tol * previous or rms <= floor:
+            break
+        previous = rms
+    return X, L, rms, sweep
+
+
 warmed = False
 
 
@@ -541,4 +654,6 @@ def warm() -> None:
     row_misfits(np.zeros(3), P, Y, d, np.array([0, 3]))
     row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
     schur_matrix(np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]), np.empty((2, 2, 1, 1)))
+    affine_als(np.array([0, 1]), np.array([0, 0]), np.ones((2, 2)), np.zeros((1, 3)),
+               np.ones(2, dtype=np.bool_), 2, 1, 0.0, 0.0)
     warmed = True

@@ -132,6 +132,9 @@ def solve_refine(observations: Observations, *, random_state=None,
     solution. When the descent from it ends at a relative stress above 1e-10
     (noisy views, where the algebraic start can land in a poor basin), refine
     also descends from the paper's smart start and keeps the lower objective.
+    When factorize says its cloud of noisy dense views is undetermined along
+    a direction (``info["degenerate"]``), refine descends from the smart start
+    alone.
     With ``outliers="keep"`` the result is never worse than the start: if the
     minimiser ends higher, the start is returned. Rejecting observations
     trades the paper's stress for a fit that the corrupted rows do not bend,
@@ -152,9 +155,17 @@ def solve_refine(observations: Observations, *, random_state=None,
         scale = max(_HUBER_K * spread, 1e-12 * radius)  # noise-free: residuals are ~0
     stress = Stress(observations, loss, scale)
     f0 = start.stress if loss == "l2" or exact_start else None  # the start's stress is known
-    X, P, value, history, iterations, termination = _descend(observations, stress, X0, P0, f0,
-                                                             max_iter, tol, total)
+    # factorize's noisy cloud left undetermined along a direction (it said so): L-BFGS
+    # from it crawls (gradients of 1e9, steps of 1e-14) to a basin the MDS start beats
+    hopeless = start.info["degenerate"] and start.stress > _NOISY * total and not stress.sparse
     used_start = "factorize"
+    if hopeless:  # kept only if the smart start's descent ends higher still
+        value = stress.value(X0, P0) if f0 is None else f0
+        X, P, history, iterations = X0, P0, [value], 0
+        termination = "factorize's start, undetermined along a direction"
+    else:
+        X, P, value, history, iterations, termination = _descend(
+            observations, stress, X0, P0, f0, max_iter, tol, total)
     if value > _NOISY * total and not stress.sparse:  # noisy views: the algebraic start
         # may sit in a poor basin; the smart start is an N x N MDS, so only when dense
         from mpe3d.solvers.sgd import initial_state

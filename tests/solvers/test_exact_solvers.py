@@ -179,3 +179,34 @@ def test_robust_scale_comes_from_the_residuals():
     rec = solve_refine(obs, random_state=0, loss="soft_l1")
     assert rec.info["loss"] == "soft_l1" and 0 < rec.info["loss_scale"] < 1
     assert rec.stress == pytest.approx(Stress(obs).value(rec.points, rec.projections))
+
+
+def test_refine_does_not_descend_from_a_start_factorize_calls_undetermined(monkeypatch):
+    # 70% noisy rows on a car of 128 points: factorize's cloud is blind along a
+    # direction (it says so), and L-BFGS from it crawls to a far worse basin
+    # than the MDS start's; refine must spend nothing on it.
+    import mpe3d.solvers.refine as refine
+
+    _, _, obs = scene_and_observations(shape="car", points=128, views=5, projections="variable",
+                                       **{"visibility.mode": "exact", "visibility.k": 3,
+                                          "noise.type": "distance", "noise.fraction": 0.7,
+                                          "noise.amplitude": 0.05})
+    with pytest.warns(DegenerateWarning, match="blind direction"):
+        start = solvers.solve("factorize", obs, random_state=0)
+    assert start.info["degenerate"]
+    starts = []
+    descend = refine._descend
+
+    def recording(observations, stress, X0, P0, *args):
+        starts.append(X0)
+        return descend(observations, stress, X0, P0, *args)
+
+    monkeypatch.setattr(refine, "_descend", recording)
+    with pytest.warns(DegenerateWarning):
+        rec = solvers.solve("refine", obs, random_state=0, outliers="keep")
+    assert rec.info["start"] == "smart (MDS)"
+    assert starts and not any(np.array_equal(X0, start.points) for X0 in starts)
+    plain = Stress(obs)
+    from_start = descend(obs, plain, start.points, start.projections, None, 500, 1e-12,
+                         plain.target_energy())
+    assert rec.stress < from_start[2]
