@@ -124,22 +124,23 @@ def test_refine_under_heavy_noise_is_no_worse_than_sgd():
         assert evaluate(scene.points, rec.points)[0]["roa"] < 0.5
 
 
-@pytest.mark.parametrize("loss", ["l2", "huber", "soft_l1"])
-def test_gradients_match_finite_differences(loss, rng):
-    """The loss-weighted stress and the Cayley-parametrised projections."""
+@pytest.mark.parametrize("loss, unit", [("l2", 1.0), ("huber", 1.0), ("soft_l1", 1.0), ("l2", 7.0)])
+def test_gradients_match_finite_differences(loss, unit, rng):
+    """The loss-weighted stress and the Cayley-parametrised projections, the
+    rotations in units of 1 or of a larger cloud's radius."""
     _, _, obs = scene_and_observations(points=40, views=3, projections="variable",
                                        **{"noise.type": "distance", "noise.fraction": 0.5})
     X = rng.standard_normal((40, 3))
     P = np.linalg.qr(rng.standard_normal((3, 3, 3)))[0][:, :2, :]
     stress = Stress(obs, loss, scale=0.05)
-    f, _ = stress_objective(stress, X.shape, rotations_of(P), None)
-    theta = np.concatenate([X.ravel(), 0.1 * rng.standard_normal(9)])
+    f, _ = stress_objective(stress, X.shape, rotations_of(P), None, unit)
+    theta = np.concatenate([X.ravel(), 0.1 * unit * rng.standard_normal(9)])
     value, grad = f(theta)
     step = 1e-6
     for index in list(rng.choice(120, 6, replace=False)) + [120, 124, 128]:
         e = np.zeros_like(theta)
-        e[index] = step
-        numeric = (f(theta + e)[0] - f(theta - e)[0]) / (2 * step)
+        e[index] = step * (unit if index >= 120 else 1.0)
+        numeric = (f(theta + e)[0] - f(theta - e)[0]) / (2 * e[index])
         # Central differences: O(step^2) truncation plus rounding of ~1e-16 * value / step.
         assert numeric == pytest.approx(grad[index], rel=1e-5, abs=1e-7 * max(1.0, value))
 
@@ -179,6 +180,14 @@ def test_robust_scale_comes_from_the_residuals():
     rec = solve_refine(obs, random_state=0, loss="soft_l1")
     assert rec.info["loss"] == "soft_l1" and 0 < rec.info["loss_scale"] < 1
     assert rec.stress == pytest.approx(Stress(obs).value(rec.points, rec.projections))
+
+
+def test_rotations_are_measured_in_radii_only_beyond_unit_size(rng):
+    from mpe3d.solvers.refine import rotation_unit
+
+    X = rng.standard_normal((500, 3))
+    assert rotation_unit(0.3 * X) == 1.0  # the paper's shapes: the plain variables, bit for bit
+    assert rotation_unit(400.0 * X + 1e3) == pytest.approx(400.0 * np.sqrt(3.0), rel=0.1)
 
 
 def test_refine_does_not_descend_from_a_start_factorize_calls_undetermined(monkeypatch):
