@@ -12,8 +12,13 @@ A last line times ``mpe3d run`` of the paper's default scene (airplane,
 N = 1024, K = 5, SGD) as a fresh process: its wall time, the run's own
 ``runtime_s`` (the solver) and their difference, what a process spends
 besides solving (imports, the code identity, loading the compiled kernels,
-sampling and scoring). The kernels are compiled before the first timing, as
-they are once per install. Target: the difference under 2 s.
+sampling and scoring), and when the process reached its first solve:
+the time from starting it to the solver's call (read by a probe that wraps
+``mpe3d.solvers.solve`` in the fresh process and prints the clock there).
+The kernels are compiled before the first timing, as they are once per
+install. Targets: the first solve within 2 s of the start, and the
+difference (which also holds scoring: POT's import and the exact EMD) under
+2 s.
 """
 
 from __future__ import annotations
@@ -55,20 +60,46 @@ def main(argv=None) -> int:
     return 0
 
 
+# Runs the command line as ``mpe3d`` would, with the solver entry point
+# wrapped to print the wall clock (time.time, comparable across processes)
+# on stderr at its first call.
+PROBE = """
+import sys, time
+import mpe3d.solvers as solvers
+solve = solvers.solve
+def first(*args, **kwargs):
+    if not getattr(first, "said", False):
+        first.said = True
+        print(f"FIRST_SOLVE {time.time():.6f}", file=sys.stderr, flush=True)
+    return solve(*args, **kwargs)
+solvers.solve = first
+from mpe3d.harness.cli import console
+sys.argv = ["mpe3d", *sys.argv[1:]]
+raise SystemExit(console())
+"""
+
+
 def first_solve(script: str, repeats: int) -> dict:
-    command = [script, "run", "shape=airplane", "points=1024", "views=5", "solver=sgd", "--json"]
+    words = ["run", "shape=airplane", "points=1024", "views=5", "solver=sgd", "--json"]
+    command = [script, *words]
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)  # compiles the kernels once
-    walls, solves = [], []
+    walls, solves, reached = [], [], []
     for _ in range(repeats):
         start = time.perf_counter()
         out = subprocess.run(command, check=True, capture_output=True, text=True).stdout
         walls.append(time.perf_counter() - start)
         solves.append(json.loads(out)["runtime_s"])
+        began = time.time()
+        err = subprocess.run([sys.executable, "-c", PROBE, *words], check=True,
+                             capture_output=True, text=True).stderr
+        reached.append(float(err.split("FIRST_SOLVE ")[1].split()[0]) - began)
     besides = sorted(w - s for w, s in zip(walls, solves))
     median = besides[len(besides) // 2]
-    return {"benchmark": "startup", "command": " ".join(["mpe3d", *command[1:]]),
+    first = sorted(reached)[len(reached) // 2]
+    return {"benchmark": "startup", "command": " ".join(["mpe3d", *words]),
             "wall_median_s": round(sorted(walls)[len(walls) // 2], 3),
             "solve_median_s": round(sorted(solves)[len(solves) // 2], 3),
+            "first_solve_median_s": round(first, 3), "first_solve_met": first < 2.0,
             "besides_solving_median_s": round(median, 3), "met": median < 2.0,
             "load_avg_1min": round(os.getloadavg()[0], 2)}
 
