@@ -251,19 +251,21 @@ def _place_weak(stress, X, P, weak, rejected, total) -> np.ndarray:
     distances, which still know its depth, add only that."""
     line = _line(stress, X, P, rejected, total)
     X = X.copy()
-    anchor = ~weak
+    anchors = _anchors(stress, X, P, ~weak, rejected)  # they do not move here: made once
     position = np.full((len(stress.ids), stress.n_points), -1)  # point -> its row in each view
     for k, ids in enumerate(stress.ids):
         position[k, ids] = np.arange(len(ids))
     for i in np.flatnonzero(weak):
-        rows = _rows_of_point(stress, X, P, position[:, i], rejected, anchor)
+        rows = [(Pk, Y, stress.D[k][position[k, i], cols]) for k, (cols, Pk, Y) in enumerate(anchors)
+                if position[k, i] >= 0 and len(cols)]
         if len(rows) < 2:
             continue
-        few = _stack([(Pk, Y[::-(-len(d) // _SCOUTS)], d[::-(-len(d) // _SCOUTS)])
-                      for Pk, Y, d in rows])
+        scouts = [(Pk[::-(-len(d) // _SCOUTS)], Y[::-(-len(d) // _SCOUTS)], d[::-(-len(d) // _SCOUTS)])
+                  for Pk, Y, d in rows]
+        few = _stack(scouts)
         best, best_cost = X[i], np.inf
         for a, b in itertools.combinations(range(len(rows)), 2):
-            x = _multilaterate(X[i], _pick(few, (a, b)))
+            x = _multilaterate(X[i], _stack([scouts[a], scouts[b]]))
             cost = np.minimum(_row_misfits(x, few), line).sum()
             if cost < best_cost:
                 best, best_cost = x, cost
@@ -276,36 +278,23 @@ def _place_weak(stress, X, P, weak, rejected, total) -> np.ndarray:
     return X
 
 
-def _rows_of_point(stress, X, P, position, rejected, anchor):
-    """A point's distance rows (at ``position`` in each view, -1 where unseen)
-    against the anchor points kept there: (P^k, their images, the distances)."""
-    rows = []
+def _anchors(stress, X, P, anchor, rejected):
+    """Per view, the ``anchor`` points kept there: their columns in the view,
+    P^k once per anchor, and their images."""
+    out = []
     for k, ids in enumerate(stress.ids):
-        at = position[k]
-        if at < 0:
-            continue
         cols = np.flatnonzero(anchor[ids] & ~rejected[k])
-        if len(cols):
-            rows.append((P[k], X[ids[cols]] @ P[k].T, stress.D[k][at, cols]))
-    return rows
+        out.append((cols, np.broadcast_to(P[k], (len(cols), 2, 3)), X[ids[cols]] @ P[k].T))
+    return out
 
 
 def _stack(rows):
-    """Rows as one set of anchors for the kernels: (P per anchor, images,
-    distances, each row's start)."""
+    """Rows (P per anchor, images, distances) as one set of anchors for the
+    kernels: (P, images, distances, each row's start)."""
     sizes = [len(d) for _, _, d in rows]
-    P = np.ascontiguousarray(np.concatenate([np.broadcast_to(Pk, (n, 2, 3)) for (Pk, _, _), n
-                                             in zip(rows, sizes)]))
-    return (P, np.concatenate([Y for _, Y, _ in rows]), np.concatenate([d for _, _, d in rows]),
+    return (np.ascontiguousarray(np.concatenate([Pk for Pk, _, _ in rows])),
+            np.concatenate([Y for _, Y, _ in rows]), np.concatenate([d for _, _, d in rows]),
             np.concatenate([[0], np.cumsum(sizes)]))
-
-
-def _pick(stacked, which):
-    """The rows ``which`` of a stack, as a stack."""
-    P, Y, d, starts = stacked
-    take = np.concatenate([np.arange(starts[r], starts[r + 1]) for r in which])
-    sizes = [starts[r + 1] - starts[r] for r in which]
-    return P[take], Y[take], d[take], np.concatenate([[0], np.cumsum(sizes)])
 
 
 def _row_misfits(x, stacked) -> np.ndarray:
