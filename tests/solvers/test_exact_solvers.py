@@ -194,7 +194,8 @@ def test_refine_does_not_descend_from_a_start_factorize_calls_undetermined(monke
     # 70% noisy rows on a car of 128 points: factorize's cloud is blind along a
     # direction (it says so), and L-BFGS from it crawls to a far worse basin
     # than the MDS start's; refine must spend nothing on it.
-    import mpe3d.solvers.refine as refine
+    from mpe3d.solvers import lbfgs
+    from mpe3d.solvers.refine import rotation_unit
 
     _, _, obs = scene_and_observations(shape="car", points=128, views=5, projections="variable",
                                        **{"visibility.mode": "exact", "visibility.k": 3,
@@ -204,18 +205,19 @@ def test_refine_does_not_descend_from_a_start_factorize_calls_undetermined(monke
         start = solvers.solve("factorize", obs, random_state=0)
     assert start.info["degenerate"]
     starts = []
-    descend = refine._descend
+    minimize = lbfgs.minimize
 
-    def recording(observations, stress, X0, P0, *args):
-        starts.append(X0)
-        return descend(observations, stress, X0, P0, *args)
+    def recording(fun, x0, **options):
+        starts.append(x0[:start.points.size].reshape(start.points.shape))
+        return minimize(fun, x0, **options)
 
-    monkeypatch.setattr(refine, "_descend", recording)
+    monkeypatch.setattr(lbfgs, "minimize", recording)
     with pytest.warns(DegenerateWarning):
         rec = solvers.solve("refine", obs, random_state=0, outliers="keep")
     assert rec.info["start"] == "smart (MDS)"
     assert starts and not any(np.array_equal(X0, start.points) for X0 in starts)
-    plain = Stress(obs)
-    from_start = descend(obs, plain, start.points, start.projections, None, 500, 1e-12,
-                         plain.target_energy())
-    assert rec.stress < from_start[2]
+    X, P = start.points, start.projections
+    f, _ = stress_objective(Stress(obs), X.shape, rotations_of(P), None, rotation_unit(X))
+    from_start = minimize(f, np.concatenate([X.ravel(), np.zeros(3 * len(P))]), max_iter=500,
+                          ftol=1e-12)
+    assert rec.stress < from_start.fun
