@@ -425,22 +425,67 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
     return total, grad
 
 
-# A PSD matrix with det > this x trace^d is inverted directly, the rest by SVD
-# (the bound of linalg.pinv_psd).
+# A PSD matrix with det > this x trace^d is inverted directly, the rest by an
+# eigendecomposition (the bound of linalg.pinv_psd).
 _WELL_CONDITIONED = 1e-8
+# Eigenvalues below this share of the largest are dropped, as numpy's pinv's rcond.
+_RCOND = 1e-15
+
+
+@njit(cache=True, nogil=True)
+def _pinv_sym(M, out):
+    """out = pinv(M) for a small symmetric PSD M, by cyclic Jacobi rotations:
+    plain loops, where numba's LAPACK wrappers (det, inv, pinv) added 5 s to
+    the kernels' first compile."""
+    n = M.shape[0]
+    A = M.copy()
+    V = np.eye(n)
+    for _ in range(50):
+        off = 0.0
+        for p in range(n):
+            for q in range(p + 1, n):
+                off += A[p, q] * A[p, q]
+        if off <= 1e-30 * (np.sum(A * A) + 1e-300):
+            break
+        for p in range(n):
+            for q in range(p + 1, n):
+                if A[p, q] == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * A[p, q])
+                t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                sn = t * c
+                for r in range(n):  # A <- J^T A J, V <- V J
+                    arp, arq = A[r, p], A[r, q]
+                    A[r, p], A[r, q] = c * arp - sn * arq, sn * arp + c * arq
+                for r in range(n):
+                    apr, aqr = A[p, r], A[q, r]
+                    A[p, r], A[q, r] = c * apr - sn * aqr, sn * apr + c * aqr
+                for r in range(n):
+                    vrp, vrq = V[r, p], V[r, q]
+                    V[r, p], V[r, q] = c * vrp - sn * vrq, sn * vrp + c * vrq
+    top = 0.0
+    for p in range(n):
+        top = max(top, abs(A[p, p]))
+    out[:] = 0.0
+    for k in range(n):
+        if A[k, k] > _RCOND * top:
+            for p in range(n):
+                for q in range(n):
+                    out[p, q] += V[p, k] * V[q, k] / A[k, k]
 
 
 @njit(cache=True, nogil=True)
 def _pinv_psd3(M, out):
     """out = pinv(M) for a symmetric PSD 3 x 3 M: the cofactor inverse where
-    det / trace^3 says it is well conditioned, numba's SVD pinv otherwise."""
+    det / trace^3 says it is well conditioned, :func:`_pinv_sym` otherwise."""
     c0 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]
     c1 = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
     c2 = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
     det = M[0, 0] * c0 + M[0, 1] * c1 + M[0, 2] * c2
     trace = M[0, 0] + M[1, 1] + M[2, 2]
     if not det > _WELL_CONDITIONED * trace * trace * trace:
-        out[:] = np.linalg.pinv(M)
+        _pinv_sym(M, out)
         return
     out[0, 0], out[1, 0], out[2, 0] = c0 / det, c1 / det, c2 / det
     out[0, 1] = (M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]) / det
@@ -449,15 +494,6 @@ def _pinv_psd3(M, out):
     out[0, 2] = (M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]) / det
     out[1, 2] = (M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]) / det
     out[2, 2] = (M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]) / det
-
-
-@njit(cache=True, nogil=True)
-def _pinv_psd(M):
-    """pinv(M) for a small symmetric PSD M: LU inverse where well conditioned."""
-    d = M.shape[0]
-    if np.linalg.det(M) > _WELL_CONDITIONED * np.trace(M) ** d:
-        return np.linalg.inv(M)
-    return np.linalg.pinv(M)
 
 
 @njit(cache=True, nogil=True)
@@ -477,8 +513,9 @@ def _fit_affine_views(X, view, point, z, informative, AtA, Atz, L, t):
                 AtA[k, p, q] += a[p] * a[q]
             Atz[k, p, 0] += a[p] * z[s, 0]
             Atz[k, p, 1] += a[p] * z[s, 1]
+    inverse = np.empty((4, 4))
     for k in range(AtA.shape[0]):
-        inverse = _pinv_psd(AtA[k])
+        _pinv_sym(AtA[k], inverse)
         for c in range(2):
             for p in range(4):
                 value = inverse[p, 0] * Atz[k, 0, c] + inverse[p, 1] * Atz[k, 1, c] \

@@ -208,13 +208,15 @@ def _numpy_affine_als(view, point, z, X, N, K, max_iter, tol, floor):
 
 @pytest.mark.parametrize("noise", [0.0, 0.05])
 def test_compiled_affine_sweeps_are_the_numpy_ones(rng, noise):
-    N, K = 80, 4
+    N, K = 80, 5
     X = rng.normal(size=(N, 3))
     L, t = rng.normal(size=(K, 3, 2)), rng.normal(size=(K, 2))
     seen = rng.random((K, N)) < 0.7
     seen[:2, :40] = True
-    seen[:, 70] = [True, False, False, False]  # seen once: rank-2 normal equations
+    seen[:, 70] = [True, False, False, False, False]  # seen once: rank-2 normal equations
     seen[:, 71] = False  # never seen: comes back at the origin
+    seen[4] = False
+    seen[4, :2] = True  # a view of two points: its 4 x 4 system has rank 2
     view, point = np.nonzero(seen)
     z = np.einsum("tab,ta->tb", L[view], X[point]) + t[view] + noise * rng.normal(size=(len(view), 2))
     start = X + 0.3 * rng.normal(size=X.shape)  # the sweeps' own start, away from the answer
