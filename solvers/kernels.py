@@ -262,6 +262,27 @@ def smacof(D: np.ndarray, init: np.ndarray, max_iter: int = 300, eps: float = 1e
     return X, stress, max_iter
 
 
+# A PSD matrix with det > this x trace^d is inverted directly, the rest another
+# way (the bound of linalg.pinv_psd, which this layer may not import).
+_WELL_CONDITIONED = 1e-8
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _symmetric_cofactors(m00, m01, m02, m11, m12, m22):
+    """The cofactors of a symmetric 3 x 3 M (its inverse times det: c0 c1 c2 /
+    c1 c4 c5 / c2 c5 c8), det, and whether det / trace^3 says M is well
+    conditioned (a bound on lambda_min / lambda_max for PSD M)."""
+    c0 = m11 * m22 - m12 * m12
+    c1 = m12 * m02 - m01 * m22
+    c2 = m01 * m12 - m11 * m02
+    c4 = m00 * m22 - m02 * m02
+    c5 = m01 * m02 - m00 * m12
+    c8 = m00 * m11 - m01 * m01
+    det = m00 * c0 + m01 * c1 + m02 * c2
+    trace = m00 + m11 + m22
+    return c0, c1, c2, c4, c5, c8, det, det > _WELL_CONDITIONED * trace * trace * trace and trace > 0.0
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _residual_row(x, P, Y, d, root, t):
     """Anchor t's weighted residual -root (d - e) and its gradient in x."""
@@ -291,15 +312,8 @@ def _gauss_newton_step(x, P, Y, d, root):
         v0 += a0 * b
         v1 += a1 * b
         v2 += a2 * b
-    c0 = m11 * m22 - m12 * m12  # cofactors of the symmetric M: det and the inverse
-    c1 = m12 * m02 - m01 * m22
-    c2 = m01 * m12 - m11 * m02
-    c4 = m00 * m22 - m02 * m02
-    c5 = m01 * m02 - m00 * m12
-    c8 = m00 * m11 - m01 * m01
-    det = m00 * c0 + m01 * c1 + m02 * c2
-    trace = m00 + m11 + m22
-    if det > 1e-8 * trace * trace * trace and trace > 0.0:  # det / trace^3 bounds the condition
+    c0, c1, c2, c4, c5, c8, det, good = _symmetric_cofactors(m00, m01, m02, m11, m12, m22)
+    if good:
         step = np.empty(3)
         step[0] = (c0 * v0 + c1 * v1 + c2 * v2) / det
         step[1] = (c1 * v0 + c4 * v1 + c5 * v2) / det
@@ -425,9 +439,6 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
     return total, grad
 
 
-# A PSD matrix with det > this x trace^d is inverted directly, the rest by an
-# eigendecomposition (the bound of linalg.pinv_psd).
-_WELL_CONDITIONED = 1e-8
 # Eigenvalues below this share of the largest are dropped, as numpy's pinv's rcond.
 _RCOND = 1e-15
 
@@ -478,22 +489,15 @@ def _pinv_sym(M, out):
 @njit(cache=True, nogil=True)
 def _pinv_psd3(M, out):
     """out = pinv(M) for a symmetric PSD 3 x 3 M: the cofactor inverse where
-    det / trace^3 says it is well conditioned, :func:`_pinv_sym` otherwise."""
-    c0 = M[1, 1] * M[2, 2] - M[1, 2] * M[2, 1]
-    c1 = M[1, 2] * M[2, 0] - M[1, 0] * M[2, 2]
-    c2 = M[1, 0] * M[2, 1] - M[1, 1] * M[2, 0]
-    det = M[0, 0] * c0 + M[0, 1] * c1 + M[0, 2] * c2
-    trace = M[0, 0] + M[1, 1] + M[2, 2]
-    if not det > _WELL_CONDITIONED * trace * trace * trace:
+    it is well conditioned, :func:`_pinv_sym` otherwise."""
+    c0, c1, c2, c4, c5, c8, det, good = _symmetric_cofactors(M[0, 0], M[0, 1], M[0, 2], M[1, 1],
+                                                             M[1, 2], M[2, 2])
+    if not good:
         _pinv_sym(M, out)
         return
-    out[0, 0], out[1, 0], out[2, 0] = c0 / det, c1 / det, c2 / det
-    out[0, 1] = (M[0, 2] * M[2, 1] - M[0, 1] * M[2, 2]) / det
-    out[1, 1] = (M[0, 0] * M[2, 2] - M[0, 2] * M[2, 0]) / det
-    out[2, 1] = (M[0, 1] * M[2, 0] - M[0, 0] * M[2, 1]) / det
-    out[0, 2] = (M[0, 1] * M[1, 2] - M[0, 2] * M[1, 1]) / det
-    out[1, 2] = (M[0, 2] * M[1, 0] - M[0, 0] * M[1, 2]) / det
-    out[2, 2] = (M[0, 0] * M[1, 1] - M[0, 1] * M[1, 0]) / det
+    out[0, 0], out[0, 1], out[0, 2] = c0 / det, c1 / det, c2 / det
+    out[1, 0], out[1, 1], out[1, 2] = c1 / det, c4 / det, c5 / det
+    out[2, 0], out[2, 1], out[2, 2] = c2 / det, c5 / det, c8 / det
 
 
 @njit(cache=True, nogil=True)
