@@ -643,37 +643,37 @@ def schur_products(Y, view, starts, B):
     return B, C, D
 
 
-def schur_matrix(Y, view, starts, blocks: np.ndarray) -> np.ndarray:
-    """The dense reduced camera system's Schur term sum_i Y_i^T Y_i, columns
-    per_view * k + p for view k's parameter p, then the shared ones, from
-    :func:`schur_products`' blocks (``blocks``: its (K, K, per_view, per_view)
-    workspace)."""
-    return _dense_from_blocks(*schur_products(Y, view, starts, blocks))
+def reduced_system(V, Y, view, starts, blocks: np.ndarray) -> np.ndarray:
+    """The upper triangle of the reduced camera system S = V - sum_i Y_i^T Y_i,
+    columns per_view * k + p for view k's parameter p, then the shared ones,
+    from :func:`schur_products`' blocks (``blocks``: its (K, K, per_view,
+    per_view) workspace); S's lower triangle is V's (Cholesky reads the upper
+    one)."""
+    return _subtract_blocks(V.copy(), *schur_products(Y, view, starts, blocks))
 
 
 @njit(cache=True, nogil=True)
-def _dense_from_blocks(B, C, D):
-    """The symmetric matrix of :func:`schur_products`' blocks in one pass: each
-    pair of views was summed on one side (B[k, l] or B[l, k]), so its block is
-    their sum, the same bits on both sides of the diagonal; a view's own block
-    is whole."""
+def _subtract_blocks(S, B, C, D):
+    """S's upper triangle less the symmetric matrix of :func:`schur_products`'
+    blocks, in one pass along S's rows: each pair of views was summed on one
+    side (B[k, l] or B[l, k]), so its block is their sum; a view's own block is
+    whole. Only the upper triangle: the dense matrix's column writes cost as
+    much as its row writes at 250 views."""
     K, pv, ns = B.shape[0], B.shape[2], D.shape[0]
-    size = K * pv + ns
-    S = np.empty((size, size))
+    base = K * pv
     for k in range(K):
         for p in range(pv):
             row = S[k * pv + p]
-            for q in range(pv):
-                row[k * pv + q] = B[k, k, p, q]
+            for q in range(p, pv):
+                row[k * pv + q] -= B[k, k, p, q]
             for l in range(k + 1, K):
                 for q in range(pv):
-                    value = B[k, l, p, q] + B[l, k, q, p]
-                    row[l * pv + q] = value
-                    S[l * pv + q, k * pv + p] = value
+                    row[l * pv + q] -= B[k, l, p, q] + B[l, k, q, p]
             for s in range(ns):
-                row[K * pv + s] = C[k, p, s]
-                S[K * pv + s, k * pv + p] = C[k, p, s]
-    S[K * pv:, K * pv:] = D
+                row[base + s] -= C[k, p, s]
+    for s in range(ns):
+        for u in range(s, ns):
+            S[base + s, base + u] -= D[s, u]
     return S
 
 
@@ -694,7 +694,7 @@ def warm() -> None:
     multilaterate(np.zeros(3), P, Y, d, d, 1)
     row_misfits(np.zeros(3), P, Y, d, np.array([0, 3]))
     row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
-    schur_matrix(np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]), np.empty((2, 2, 1, 1)))
+    reduced_system(np.eye(2), np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]), np.empty((2, 2, 1, 1)))
     affine_als(np.array([0, 1]), np.array([0, 0]), np.ones((2, 2)), np.zeros((1, 3)),
                np.ones(2, dtype=np.bool_), 2, 1, 0.0, 0.0)
     warmed = True

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
-from mpe3d.solvers.kernels import schur_matrix
+from mpe3d.solvers.kernels import reduced_system
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
 from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, rms
@@ -168,14 +168,14 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     return Fit(X, cameras, np.array(history), converged)
 
 
-def _schur_term(U_damped, W, structure):
-    """sum_i W_i^T U_i^-1 W_i = Y^T Y, with Y the stack of U_i^-1/2 W_i, by
-    the compiled pass over each point's pairs of observations
-    (:func:`mpe3d.solvers.kernels.schur_matrix`)."""
+def _reduced_system(V, U_damped, W, structure):
+    """The upper triangle of S = V - sum_i W_i^T U_i^-1 W_i = V - Y^T Y, with Y
+    the stack of U_i^-1/2 W_i, by the compiled pass over each point's pairs of
+    observations (:func:`mpe3d.solvers.kernels.reduced_system`)."""
     values, vectors = np.linalg.eigh(U_damped)
     root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
     Y = np.matmul(root[structure.point_by_point], W[structure.by_point])  # (T, 3, c), by point
-    return schur_matrix(Y, structure.view_by_point, structure.point_starts, structure.blocks)
+    return reduced_system(V, Y, structure.view_by_point, structure.point_starts, structure.blocks)
 
 
 def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
@@ -191,7 +191,7 @@ def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
         U_inv = np.linalg.inv(U_damped)
     except np.linalg.LinAlgError:
         return None
-    S = V - _schur_term(U_damped, W, structure) if structure.size else V
+    S = _reduced_system(V, U_damped, W, structure) if structure.size else V.copy()
     S[np.diag_indices_from(S)] += lam * D_c
     Ug = np.einsum("nij,nj->ni", U_inv, g_x)
     rhs = g_c - np.bincount(structure.cols.ravel(), minlength=structure.size,

@@ -108,8 +108,8 @@ def test_grouped_products_equal_the_per_row_ones(rng):
     assert np.allclose(gram_by_group(Y, group, 5), [Y[group == g].T @ Y[group == g] for g in range(5)])
 
 
-def test_the_schur_matrix_is_the_sparse_stack_s_gram_matrix(rng):
-    """S = Y^T Y for Y stacking each point's 3 rows over its observations'
+def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng):
+    """S = V - Y^T Y for Y stacking each point's 3 rows over its observations'
     camera columns; a shared column (a lens for all views) recurs in a row, and
     a point seen twice in one view (a conflicting track) meets itself there."""
     n_points, n_views, per_view = 30, 6, 4
@@ -124,9 +124,11 @@ def test_the_schur_matrix_is_the_sparse_stack_s_gram_matrix(rng):
         for a in range(3):
             np.add.at(dense[3 * point[t] + a], cols[t], Y[t, a])
     starts = np.concatenate([[0], np.cumsum(np.bincount(point, minlength=n_points))])
-    S = kernels.schur_matrix(Y, view, starts, np.full((n_views, n_views, per_view, per_view), np.nan))
-    assert np.allclose(S, dense.T @ dense, rtol=1e-12, atol=1e-12)
-    assert np.array_equal(S, S.T)  # bit for bit: Cholesky reads one triangle
+    V = rng.normal(size=(size, size))
+    S = kernels.reduced_system(V, Y, view, starts, np.full((n_views, n_views, per_view, per_view), np.nan))
+    upper = np.triu_indices(size)
+    assert np.allclose(S[upper], (V - dense.T @ dense)[upper], rtol=1e-12, atol=1e-12)
+    assert np.array_equal(np.tril(S, -1), np.tril(V, -1))  # Cholesky reads the upper triangle only
 
 
 def test_the_fixed_elimination_is_the_same_in_blocks(monkeypatch):
