@@ -649,6 +649,11 @@ def reduced_system(V, Y, view, starts, blocks: np.ndarray) -> np.ndarray:
     from :func:`schur_products`' blocks (``blocks``: its (K, K, per_view,
     per_view) workspace); S's lower triangle is V's (Cholesky reads the upper
     one)."""
+    K, pv = blocks.shape[0], blocks.shape[2]
+    size = K * pv + Y.shape[2] - pv
+    if V.shape != (size, size) or blocks.shape != (K, K, pv, pv):  # the kernels index unchecked
+        raise ValueError(f"reduced_system: V {V.shape} and blocks {blocks.shape} do not fit "
+                         f"{K} views of {pv} parameters and {Y.shape[2] - pv} shared")
     return _subtract_blocks(V.copy(), *schur_products(Y, view, starts, blocks))
 
 
@@ -694,7 +699,8 @@ def warm() -> None:
     multilaterate(np.zeros(3), P, Y, d, d, 1)
     row_misfits(np.zeros(3), P, Y, d, np.array([0, 3]))
     row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
-    reduced_system(np.eye(2), np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]), np.empty((2, 2, 1, 1)))
+    # two views of one parameter and one shared: V is (2 * 1 + 1) square
+    reduced_system(np.eye(3), np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]), np.empty((2, 2, 1, 1)))
     affine_als(np.array([0, 1]), np.array([0, 0]), np.ones((2, 2)), np.zeros((1, 3)),
                np.ones(2, dtype=np.bool_), 2, 1, 0.0, 0.0)
     warmed = True

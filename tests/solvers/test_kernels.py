@@ -129,6 +129,12 @@ def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng):
     upper = np.triu_indices(size)
     assert np.allclose(S[upper], (V - dense.T @ dense)[upper], rtol=1e-12, atol=1e-12)
     assert np.array_equal(np.tril(S, -1), np.tril(V, -1))  # Cholesky reads the upper triangle only
+    # the compiled loops index unchecked: a V that does not fit is refused, not written past
+    # (kernels.warm() once passed a 2 x 2 V for a 3 x 3 system, and the heap it corrupted
+    # crashed sweep workers in the garbage collector, at random)
+    with pytest.raises(ValueError, match="do not fit"):
+        kernels.reduced_system(np.eye(size - 1), Y, view, starts,
+                               np.empty((n_views, n_views, per_view, per_view)))
 
 
 def test_the_fixed_elimination_is_the_same_in_blocks(monkeypatch):
