@@ -152,3 +152,27 @@ def close_up_keypoints(n=300, views=8, distance=0.9, orthographic=False):
         xy = cameras.focal * x[:, :2] / depth + 200.0 + 0.3 * rng.normal(size=(n, 2))
         out.append({"ids": np.arange(n), "xy": xy})
     return out
+
+
+def children(uri, experiment):
+    """A sweep's child runs and its parent runs in an MLflow store."""
+    from mlflow.tracking import MlflowClient
+
+    from mpe3d.harness.tracking.store import PARENT_TAG
+
+    client = MlflowClient(uri)
+    exp = client.get_experiment_by_name(experiment)
+    runs = client.search_runs([exp.experiment_id], max_results=5000)
+    return [r for r in runs if PARENT_TAG in r.data.tags], [r for r in runs if PARENT_TAG not in r.data.tags]
+
+
+def finished_once(kids, configs):
+    """Every config has exactly one FINISHED run, and no run is left RUNNING."""
+    from collections import Counter
+
+    from mpe3d.harness.tracking.store import HASH_TAG
+
+    done = Counter(r.data.tags[HASH_TAG] for r in kids if r.info.status == "FINISHED")
+    assert set(done) == {c.hash() for c in configs}
+    assert set(done.values()) == {1}, done.most_common(3)
+    assert "RUNNING" not in {r.info.status for r in kids}

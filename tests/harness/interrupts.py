@@ -44,6 +44,7 @@ class Outcome:
     left_alive: list[int] = field(default_factory=list)
     last_line: str = ""
     rerun_code: int | None = None
+    rerun_error: str = ""  # the rerun's last line of stderr when it fails
     lost: int = 0
     computed_twice: int = 0
     missing: int = 0
@@ -175,6 +176,8 @@ def trial(folder: Path, moment: str, rng, how: str = "group-sigint", repeats: in
     rerun = subprocess.run([*mpe3d_command(), *argv], cwd=folder, capture_output=True, text=True,
                            timeout=600)
     outcome.rerun_code = rerun.returncode
+    if rerun.returncode:
+        outcome.rerun_error = (rerun.stderr.strip().splitlines() or [""])[-1]
     final = _finished(uri, "intr")
     from mpe3d.harness.experiment.sweep import load_sweep
 
@@ -183,3 +186,15 @@ def trial(folder: Path, moment: str, rng, how: str = "group-sigint", repeats: in
     outcome.computed_twice = sum(n > 1 for n in final.values())
     outcome.missing = len(hashes - set(final))
     return outcome
+
+
+def check(outcome) -> None:
+    """A stopped sweep's outcome as the tests require it: exit 130 within EXIT_S, the
+    one line last, no process left, and a rerun that completes every config once."""
+    assert not outcome.too_late, "the sweep was over before the signal: make it longer"
+    assert not outcome.hung, f"still alive {EXIT_S} s after {outcome.how} at {outcome.moment}"
+    assert outcome.exit_code == 130, outcome
+    assert outcome.last_line == LAST_LINE, outcome.last_line
+    assert not outcome.left_alive, f"processes left: {outcome.left_alive}"
+    assert outcome.rerun_code == 0, outcome
+    assert (outcome.lost, outcome.computed_twice, outcome.missing) == (0, 0, 0), outcome
