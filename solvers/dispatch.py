@@ -70,7 +70,8 @@ def solve(name: str, observations: Observations, *, init: str = "smart",
         importlib.import_module(module)
     from mpe3d.solvers import kernels
 
-    kernels.warm()  # compiled, or loaded from numba's disk cache, before the clock too
+    # compiled, or loaded from numba's disk cache, before the clock too
+    kernels.warm(options.get("loss", "l2"))
     start = time.perf_counter()
     result = spec.func(observations, random_state=rng, **options)
     runtime = time.perf_counter() - start

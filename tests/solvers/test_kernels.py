@@ -137,6 +137,30 @@ def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng):
                                np.empty((n_views, n_views, per_view, per_view)))
 
 
+def test_a_robust_losss_kernel_is_warmed_only_for_a_solve_that_asks_for_it(tmp_path):
+    """A first compile skips the robust losses' dense kernels (a third of it)
+    unless a solve uses one; that solve still compiles it before its clock."""
+    import subprocess
+    import sys
+
+    code = """
+from mpe3d import solvers
+from mpe3d.solvers import kernels
+from tests.helpers import scene_and_observations
+kernels.warm()
+print(len(kernels.DENSE_KERNELS[kernels.L2].signatures), len(kernels.DENSE_KERNELS[kernels.HUBER].signatures))
+_, _, obs = scene_and_observations(points=40, views=3, projections="fixed", **{"noise.type": "distance",
+                                   "noise.fraction": 0.3, "noise.amplitude": 0.05})
+solvers.solve("refine", obs, random_state=0, loss="huber")
+print(len(kernels.DENSE_KERNELS[kernels.HUBER].signatures), len(kernels.DENSE_KERNELS[kernels.SOFT_L1].signatures))
+"""
+    from tests.helpers import REPO
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["1", "0", "1", "0"], out.stdout
+
+
 def test_the_fixed_elimination_is_the_same_in_blocks(monkeypatch):
     """factorize's fixed setting forms X = Y(h) block by block of points (no
     N x 3 x 4K array at a million points); the block size changes no digit
