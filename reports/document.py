@@ -87,9 +87,12 @@ class Report:
 
         png = self.out / "figures" / f"{name}.png"
         pdf = self.out / "figures" / f"{name}.pdf"
-        fig.savefig(png, dpi=120, bbox_inches="tight")
+        # the tight box measured once for both files: "tight" draws the whole
+        # figure once more per file just to measure it
+        box = fig.get_tightbbox(fig.canvas.get_renderer()).padded(plt.rcParams["savefig.pad_inches"])
+        fig.savefig(png, dpi=120, bbox_inches=box)
         if self.pdf:
-            fig.savefig(pdf, bbox_inches="tight")
+            fig.savefig(pdf, bbox_inches=box)
         labels = _legend_labels(fig)
         plt.close(fig)
         self._wrote([png, pdf] if self.pdf else [png])
