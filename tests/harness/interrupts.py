@@ -43,6 +43,7 @@ class Outcome:
     hung: bool = False
     left_alive: list[int] = field(default_factory=list)
     last_line: str = ""
+    stderr_tail: str = ""  # the last lines of stderr: what followed our line, if anything
     rerun_code: int | None = None
     rerun_error: str = ""  # the rerun's last line of stderr when it fails
     lost: int = 0
@@ -167,6 +168,7 @@ def trial(folder: Path, moment: str, rng, how: str = "group-sigint", repeats: in
         _, err = sweep.communicate()
     lines = [line for line in (err or "").splitlines() if line.strip()]
     outcome.last_line = lines[-1] if lines else ""
+    outcome.stderr_tail = "\n".join(lines[-8:])
     _, alive = psutil.wait_procs([p for p in psutil.process_iter() if p.pid in family
                                   and p.pid != sweep.pid], timeout=EXIT_S)
     outcome.left_alive = [p.pid for p in alive]
@@ -194,7 +196,7 @@ def check(outcome) -> None:
     assert not outcome.too_late, "the sweep was over before the signal: make it longer"
     assert not outcome.hung, f"still alive {EXIT_S} s after {outcome.how} at {outcome.moment}"
     assert outcome.exit_code == 130, outcome
-    assert outcome.last_line == LAST_LINE, outcome.last_line
+    assert outcome.last_line == LAST_LINE, outcome.stderr_tail
     assert not outcome.left_alive, f"processes left: {outcome.left_alive}"
     assert outcome.rerun_code == 0, outcome
     assert (outcome.lost, outcome.computed_twice, outcome.missing) == (0, 0, 0), outcome
