@@ -32,7 +32,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-# Loss codes, in the order of stress.STRESS_LOSSES.
+# Loss codes, and the names a solver's ``loss`` option gives them.
 L2, HUBER, SOFT_L1 = 0, 1, 2
 LOSS_CODES = {"l2": L2, "huber": HUBER, "soft_l1": SOFT_L1}
 # Floor on e in 1/e: keeps it finite for coincident images, where r e-terms cancel.
@@ -581,6 +581,7 @@ def affine_als(view, point, z, X, informative, n_views, max_iter, tol, floor):
 
 
 warmed = False
+_WARM_Y = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # three image points: the warm-up's view
 _warm_losses: set = set()  # the robust losses' dense kernels warmed in this process
 
 
@@ -695,7 +696,7 @@ def warm(loss: str = "l2") -> None:
     global warmed
     if warmed:
         return
-    Y = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])
+    Y = _WARM_Y
     # One signature per kernel, so one call each compiles it all.
     view_stress(None, np.ones((3, 3)), Y, None, None, L2, 1.0, True)
     view_stress((np.array([0, 1]), np.array([1, 2]), np.ones(2)), None, Y, None, None, L2, 1.0, True)
@@ -715,6 +716,5 @@ def warm(loss: str = "l2") -> None:
 def _warm_loss(code: int) -> None:
     """The dense stress kernel of a robust loss, once per process."""
     if code != L2 and code not in _warm_losses:
-        view_stress(None, np.ones((3, 3)), np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]]),
-                    None, None, code, 1.0, True)
+        view_stress(None, np.ones((3, 3)), _WARM_Y, None, None, code, 1.0, True)
         _warm_losses.add(code)

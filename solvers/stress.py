@@ -75,7 +75,7 @@ def _view_inputs(observations: Observations) -> list:
     return cache[DENSE_LIMIT]
 
 
-STRESS_LOSSES = ("l2", "huber", "soft_l1")  # in the order of the kernels' loss codes
+STRESS_LOSSES = tuple(kernels.LOSS_CODES)  # the kernels' loss names, in the order of their codes
 KERNELS = ("compiled", "numpy")
 
 

@@ -137,7 +137,7 @@ def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng):
                                np.empty((n_views, n_views, per_view, per_view)))
 
 
-def test_a_robust_losss_kernel_is_warmed_only_for_a_solve_that_asks_for_it(tmp_path):
+def test_a_robust_losss_kernel_is_warmed_only_for_a_solve_that_asks_for_it():
     """A first compile skips the robust losses' dense kernels (a third of it)
     unless a solve uses one; that solve still compiles it before its clock."""
     import subprocess
