@@ -608,41 +608,64 @@ def schur_products(Y, view, starts, B):
     point's pair of views is summed once, into B[k, l] for its observations in
     the order given (the caller adds the transposes; an observation's own block
     B[k, k] is whole); the shared columns of a point's observations are summed
-    first, so the view-lens and lens blocks cost m_i, not m_i^2. Blocks are
-    contiguous, so the pair loop's writes stay in a few cache lines instead of
-    per_view rows of a dense matrix far apart (3.8x on 250 views)."""
+    first, so the view-lens and lens blocks cost m_i, not m_i^2.
+
+    The pairs are visited view by view (each view's observations in point
+    order, each with the later observations of its point), so that the blocks
+    written, B[k, :], are one view's row: 72 KB at 250 views, which stays in
+    cache, where a pass point by point wrote all over B's 18 MB (2.6x on 250
+    views). Every block still sums its points in increasing order, so S is the
+    same to the bit."""
     n_views, per_view = B.shape[0], B.shape[2]
+    n_points, T = len(starts) - 1, len(view)
     ns = Y.shape[2] - per_view
-    B[:] = 0.0
     C = np.zeros((n_views, per_view, ns))
     D = np.zeros((ns, ns))
-    total = np.zeros((3, ns))
-    for i in range(len(starts) - 1):
-        s0, s1 = starts[i], starts[i + 1]
-        total[:] = 0.0
-        for a in range(s0, s1):
+    totals = np.zeros((n_points, 3, ns))
+    ends = np.empty(T, dtype=np.int64)  # where each observation's point ends
+    for i in range(n_points):
+        total = totals[i]
+        for a in range(starts[i], starts[i + 1]):
+            ends[a] = starts[i + 1]
             for j in range(3):
                 for s in range(ns):
                     total[j, s] += Y[a, j, per_view + s]
-        for a in range(s0, s1):
-            va = view[a]
+        for s in range(ns):
+            for u in range(ns):
+                D[s, u] += total[0, s] * total[0, u] + total[1, s] * total[1, u] \
+                    + total[2, s] * total[2, u]
+    # each view's observations in point order (a counting sort, stable)
+    first = np.zeros(n_views + 1, dtype=np.int64)
+    for a in range(T):
+        first[view[a] + 1] += 1
+    for k in range(n_views):
+        first[k + 1] += first[k]
+    order, fill = np.empty(T, dtype=np.int64), first[:-1].copy()
+    for a in range(T):
+        order[fill[view[a]]] = a
+        fill[view[a]] += 1
+    point = np.empty(T, dtype=np.int64)
+    for i in range(n_points):
+        point[starts[i]:starts[i + 1]] = i
+    for k in range(n_views):
+        row = B[k]
+        row[:] = 0.0
+        for o in range(first[k], first[k + 1]):
+            a = order[o]
+            total = totals[point[a]]
             for p in range(per_view):
                 y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
                 for s in range(ns):
-                    C[va, p, s] += y0 * total[0, s] + y1 * total[1, s] + y2 * total[2, s]
-            for b in range(a, s1):
-                block = B[va, view[b]]
-                if b != a and view[b] == va:  # the point seen twice in a view: the
+                    C[k, p, s] += y0 * total[0, s] + y1 * total[1, s] + y2 * total[2, s]
+            for b in range(a, ends[a]):
+                block = row[view[b]]
+                if b != a and view[b] == k:  # the point seen twice in a view: the
                     _add_both_orders(block, Y[a], Y[b])  # transpose lands here too
                     continue
                 for p in range(per_view):
                     y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
                     for q in range(per_view):
                         block[p, q] += y0 * Y[b, 0, q] + y1 * Y[b, 1, q] + y2 * Y[b, 2, q]
-        for s in range(ns):
-            for u in range(ns):
-                D[s, u] += total[0, s] * total[0, u] + total[1, s] * total[1, u] \
-                    + total[2, s] * total[2, u]
     return B, C, D
 
 
