@@ -14,6 +14,7 @@ from mpe3d.solvers.linalg import pinv_psd, sum_by
 
 PAIRS = 30  # two-view hypotheses tried per point
 _REFINEMENTS = 2  # least-squares refits on a hypothesis's inliers
+POINT_ITERATIONS = 30  # Levenberg-Marquardt steps of adjusted_points, at most
 
 
 def dlt_rows(P, view, z):
@@ -29,6 +30,44 @@ def least_squares_points(A, b, point, n_points):
     lhs = sum_by(point, np.einsum("tai,taj->tij", A, A), n_points)
     rhs = sum_by(point, np.einsum("tai,ta->ti", A, b), n_points)
     return np.einsum("nij,nj->ni", pinv_psd(lhs), rhs)
+
+
+def adjusted_points(X, cameras, tracks, points, max_iter: int = POINT_ITERATIONS,
+                    tol: float = 1e-10) -> np.ndarray:
+    """X with the ``points`` ((N,) bool) moved to their least-squares positions
+    under fixed ``cameras``, from where they stand: Levenberg-Marquardt on the
+    reprojection error, a 3x3 system and a damping per point, so that a point
+    whose depth the rays barely fix converges at its own pace instead of
+    holding back a bundle's shared damping. A step is kept only where it
+    lowers its point's error."""
+    rows = points[tracks.point]
+    if not rows.any():
+        return X
+    view, point, z, N = tracks.view[rows], tracks.point[rows], tracks.z[rows], tracks.n_points
+
+    def errors(Xv):
+        r = cameras.project(Xv, view, point) - z  # nan behind a camera: never lower
+        return r, np.bincount(point, weights=np.sum(r ** 2, axis=1), minlength=N)
+
+    X, lam = X.copy(), np.full(N, 1e-3)
+    r, cost = errors(X)
+    for _ in range(max_iter):
+        d_x = cameras.jacobian_blocks(X, view, point)[0]
+        U = sum_by(point, np.einsum("tai,taj->tij", d_x, d_x), N)
+        g = sum_by(point, np.einsum("tai,ta->ti", d_x, r), N)
+        diagonal = np.einsum("nii->ni", U)
+        damping = lam[:, None] * diagonal + 1e-12 * diagonal.max(axis=1, keepdims=True) + ~points[:, None]
+        step = -np.linalg.solve(U + damping[:, :, None] * np.eye(3), g[:, :, None])[:, :, 0]
+        r_new, cost_new = errors(X + step)
+        better = points & (cost_new < cost)
+        X[better] += step[better]
+        r = np.where(better[point][:, None], r_new, r)
+        decrease = float(np.sum(cost[better] - cost_new[better]))
+        cost = np.where(better, cost_new, cost)
+        lam = np.where(better, lam / 3, lam * 10)
+        if decrease <= tol * float(cost[points].sum()):
+            break
+    return X
 
 
 def robust_points(X, cameras, tracks, points, tau, seed: int = 0):

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from mpe3d.solvers.sfm import bundle
-from mpe3d.solvers.sfm.triangulation import dlt_rows, least_squares_points, robust_points
+from mpe3d.solvers.sfm.triangulation import adjusted_points, dlt_rows, least_squares_points, robust_points
 from tests.helpers import random_views
 
 N, K = 40, 6
@@ -49,3 +49,18 @@ def test_observations_that_all_disagree_leave_the_point_alone(rng):
     tracks.z[mine] += rng.uniform(-400, 400, (len(mine), 2))
     moved, outlying = robust_points(X, cameras, tracks, np.array([2]), tau=1.0)
     assert np.all(np.isfinite(moved)) and outlying[mine].all()
+
+
+@pytest.mark.parametrize("model", ["scaled", "perspective"])
+def test_adjusted_points_reach_their_least_squares_positions_and_no_others_move(model, rng):
+    """Points knocked off (one of them far along its depth) go back under the
+    fixed cameras, to where the noise-free views put them; the rest stay put."""
+    X, cameras, tracks = _scene(model, rng)
+    moved = np.zeros(N, dtype=bool)
+    moved[[1, 4, 9]] = True
+    start = X.copy()
+    start[moved] += rng.normal(scale=5.0, size=(3, 3))
+    start[9] *= 1.5
+    out = adjusted_points(start, cameras, tracks, moved)
+    np.testing.assert_allclose(out[moved], X[moved], atol=1e-6)
+    assert np.array_equal(out[~moved], start[~moved])
