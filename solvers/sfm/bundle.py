@@ -430,7 +430,12 @@ def _best_of(starts, tracks, lm_options):
         if len(racing) == 1:
             break
     scouting, extra = min(racing, key=lambda f: f[0].history[-1])
-    return _continued(scouting._replace(converged=False), tracks, lm_options), extra
+    # the winner solved to the end without its points of weak geometry (see _peeled)
+    weak = _weak_points(scouting, tracks, np.ones(len(tracks.view), dtype=bool))
+    fit = _continued(scouting._replace(converged=False), tracks.subset(~weak[tracks.point]), lm_options)
+    if weak.any():
+        fit = fit._replace(X=adjusted_points(fit.X, fit.cameras, tracks, weak))
+    return fit, extra
 
 
 def _continued(fit, tracks, lm_options):
@@ -519,6 +524,15 @@ def _finite(threshold):
     return threshold if np.isfinite(threshold) else OUTLIER_THRESHOLD
 
 
+def _weak_points(fit, tracks, kept) -> np.ndarray:
+    """(N,) bool: the points of weak geometry (:func:`weak_geometry`) under
+    ``fit`` with the ``kept`` observations; none when they are over half the
+    placed points (then no depth is fixed, which is said, not solved)."""
+    placed = _placed(tracks, _informative(tracks, kept))
+    weak = np.logical_or(*weak_geometry(*fit[:2], tracks, kept, placed))
+    return weak if weak.sum() <= placed.sum() / 2 else np.zeros_like(weak)
+
+
 def _peeled(fit, tracks, flagged, threshold, lm_options):
     """The fit and the observations dropped after wrong matches are peeled off
     (:func:`_without_outliers`) and what the fit explains is taken back
@@ -530,10 +544,7 @@ def _peeled(fit, tracks, flagged, threshold, lm_options):
     without). They are then adjusted alone under the cameras found
     (:func:`.triangulation.adjusted_points`), as the solves would have
     placed them. Their observations flagged before stay dropped."""
-    placed = _placed(tracks, _informative(tracks, ~flagged))
-    weak = np.logical_or(*weak_geometry(*fit[:2], tracks, ~flagged, placed))
-    if not weak.any() or weak.sum() > placed.sum() / 2:  # then no depth is fixed: as _without_weak
-        weak[:] = False
+    weak = _weak_points(fit, tracks, ~flagged)
     rows = ~weak[tracks.point]
     strong = tracks.subset(rows)
     fit, peeled = _without_outliers(fit, strong, flagged[rows], threshold, lm_options)
