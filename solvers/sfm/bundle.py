@@ -35,7 +35,8 @@ then peeled off against a robust residual scale (the median residual length)
 and the problem solved again, until none is left (:func:`_without_outliers`);
 last, the points with dropped observations are triangulated again robustly
 under the final cameras, and what the fit explains is taken back
-(:func:`_readmitted`).
+(:func:`_readmitted`). The points of weak geometry (:func:`weak_geometry`)
+sit out the long solves (:func:`_peeled`) and are adjusted alone after them.
 """
 
 from __future__ import annotations
