@@ -613,7 +613,7 @@ def schur_products(Y, view, starts, B):
     The pairs are visited view by view (each view's observations in point
     order, each with the later observations of its point), so that the blocks
     written, B[k, :], are one view's row: 72 KB at 250 views, which stays in
-    cache, where a pass point by point wrote all over B's 18 MB (2.6x on 250
+    cache, where a pass point by point wrote all over B's 18 MB (1.1-1.3x on 250
     views). Every block still sums its points in increasing order, so S is the
     same to the bit."""
     n_views, per_view = B.shape[0], B.shape[2]
@@ -622,11 +622,11 @@ def schur_products(Y, view, starts, B):
     C = np.zeros((n_views, per_view, ns))
     D = np.zeros((ns, ns))
     totals = np.zeros((n_points, 3, ns))
-    ends = np.empty(T, dtype=np.int64)  # where each observation's point ends
+    point = np.empty(T, dtype=np.int64)  # each observation's
     for i in range(n_points):
         total = totals[i]
         for a in range(starts[i], starts[i + 1]):
-            ends[a] = starts[i + 1]
+            point[a] = i
             for j in range(3):
                 for s in range(ns):
                     total[j, s] += Y[a, j, per_view + s]
@@ -644,9 +644,6 @@ def schur_products(Y, view, starts, B):
     for a in range(T):
         order[fill[view[a]]] = a
         fill[view[a]] += 1
-    point = np.empty(T, dtype=np.int64)
-    for i in range(n_points):
-        point[starts[i]:starts[i + 1]] = i
     for k in range(n_views):
         row = B[k]
         row[:] = 0.0
@@ -657,7 +654,7 @@ def schur_products(Y, view, starts, B):
                 y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
                 for s in range(ns):
                     C[k, p, s] += y0 * total[0, s] + y1 * total[1, s] + y2 * total[2, s]
-            for b in range(a, ends[a]):
+            for b in range(a, starts[point[a] + 1]):
                 block = row[view[b]]
                 if b != a and view[b] == k:  # the point seen twice in a view: the
                     _add_both_orders(block, Y[a], Y[b])  # transpose lands here too

@@ -279,14 +279,11 @@ def _without_weak(fit, tracks, dropped, lm_options):
     parallel, pull on the cameras for no depth (a point 7e8 away among COLMAP's
     250 photos). Returns the fit, the points placed before, and the ``narrow``
     and ``far`` masks."""
-    X, cameras = fit[:2]
-    placed = _placed(tracks, _informative(tracks, ~dropped))
-    narrow, far = weak_geometry(X, cameras, tracks, ~dropped, placed)
-    weak = narrow | far
-    if not weak.any() or weak.sum() > placed.sum() / 2:  # then no depth is fixed: said, not solved
+    weak, placed, narrow, far = _weak_points(fit, tracks, ~dropped)
+    if not weak.any():
         return fit, placed, narrow, far
     strong = _informative(tracks, ~dropped & ~weak[tracks.point])
-    again = adjust(X, cameras, tracks.subset(strong), **lm_options)
+    again = adjust(*fit[:2], tracks.subset(strong), **lm_options)
     return again._replace(history=np.concatenate([fit.history, again.history[1:]])), placed, narrow, far
 
 
@@ -432,7 +429,7 @@ def _best_of(starts, tracks, lm_options):
             break
     scouting, extra = min(racing, key=lambda f: f[0].history[-1])
     # the winner solved to the end without its points of weak geometry (see _peeled)
-    weak = _weak_points(scouting, tracks, np.ones(len(tracks.view), dtype=bool))
+    weak = _weak_points(scouting, tracks, np.ones(len(tracks.view), dtype=bool))[0]
     fit = _continued(scouting._replace(converged=False), tracks.subset(~weak[tracks.point]), lm_options)
     if weak.any():
         fit = fit._replace(X=adjusted_points(fit.X, fit.cameras, tracks, weak))
@@ -525,13 +522,16 @@ def _finite(threshold):
     return threshold if np.isfinite(threshold) else OUTLIER_THRESHOLD
 
 
-def _weak_points(fit, tracks, kept) -> np.ndarray:
-    """(N,) bool: the points of weak geometry (:func:`weak_geometry`) under
-    ``fit`` with the ``kept`` observations; none when they are over half the
-    placed points (then no depth is fixed, which is said, not solved)."""
+def _weak_points(fit, tracks, kept):
+    """(N,) bool masks ``weak``, ``placed``, ``narrow`` and ``far``: the points
+    of weak geometry (:func:`weak_geometry`) under ``fit`` with the ``kept``
+    observations, and what they are made of. ``weak`` is none when they are
+    over half the placed points: then no depth is fixed, which is said, not
+    solved."""
     placed = _placed(tracks, _informative(tracks, kept))
-    weak = np.logical_or(*weak_geometry(*fit[:2], tracks, kept, placed))
-    return weak if weak.sum() <= placed.sum() / 2 else np.zeros_like(weak)
+    narrow, far = weak_geometry(*fit[:2], tracks, kept, placed)
+    weak = narrow | far
+    return (weak if weak.sum() <= placed.sum() / 2 else np.zeros_like(weak)), placed, narrow, far
 
 
 def _peeled(fit, tracks, flagged, threshold, lm_options):
@@ -541,11 +541,11 @@ def _peeled(fit, tracks, flagged, threshold, lm_options):
     aside: :func:`_without_weak` leaves them out of the last solve anyway,
     and their depth, which the views barely fix, is what every solve with
     them spends its last iterations on (COLMAP's tracks of 250 photos: 14
-    such points; the peeling's 21 solves took 156 iterations with them, 25
+    such points; the peeling's 21 solves took 156 iterations with them, 21
     without). They are then adjusted alone under the cameras found
     (:func:`.triangulation.adjusted_points`), as the solves would have
     placed them. Their observations flagged before stay dropped."""
-    weak = _weak_points(fit, tracks, ~flagged)
+    weak = _weak_points(fit, tracks, ~flagged)[0]
     rows = ~weak[tracks.point]
     strong = tracks.subset(rows)
     fit, peeled = _without_outliers(fit, strong, flagged[rows], threshold, lm_options)

@@ -43,30 +43,33 @@ def adjusted_points(X, cameras, tracks, points, max_iter: int = POINT_ITERATIONS
     rows = points[tracks.point]
     if not rows.any():
         return X
-    view, point, z, N = tracks.view[rows], tracks.point[rows], tracks.z[rows], tracks.n_points
+    ids = np.flatnonzero(points)  # the work is theirs alone, however many points there are
+    view, point, z, n = tracks.view[rows], np.searchsorted(ids, tracks.point[rows]), tracks.z[rows], len(ids)
 
-    def errors(Xv):
-        r = cameras.project(Xv, view, point) - z  # nan behind a camera: never lower
-        return r, np.bincount(point, weights=np.sum(r ** 2, axis=1), minlength=N)
+    def errors(x):
+        r = cameras.project(x, view, point) - z  # nan behind a camera: never lower
+        return r, np.bincount(point, weights=np.sum(r ** 2, axis=1), minlength=n)
 
-    X, lam = X.copy(), np.full(N, 1e-3)
-    r, cost = errors(X)
+    x, lam = X[ids], np.full(n, 1e-3)
+    r, cost = errors(x)
     for _ in range(max_iter):
-        d_x = cameras.jacobian_blocks(X, view, point)[0]
-        U = sum_by(point, np.einsum("tai,taj->tij", d_x, d_x), N)
-        g = sum_by(point, np.einsum("tai,ta->ti", d_x, r), N)
+        d_x = cameras.jacobian_blocks(x, view, point)[0]
+        U = sum_by(point, np.einsum("tai,taj->tij", d_x, d_x), n)
+        g = sum_by(point, np.einsum("tai,ta->ti", d_x, r), n)
         diagonal = np.einsum("nii->ni", U)
-        damping = lam[:, None] * diagonal + 1e-12 * diagonal.max(axis=1, keepdims=True) + ~points[:, None]
+        damping = lam[:, None] * diagonal + 1e-12 * diagonal.max(axis=1, keepdims=True)
         step = -np.linalg.solve(U + damping[:, :, None] * np.eye(3), g[:, :, None])[:, :, 0]
-        r_new, cost_new = errors(X + step)
-        better = points & (cost_new < cost)
-        X[better] += step[better]
+        r_new, cost_new = errors(x + step)
+        better = cost_new < cost
+        x[better] += step[better]
         r = np.where(better[point][:, None], r_new, r)
         decrease = float(np.sum(cost[better] - cost_new[better]))
         cost = np.where(better, cost_new, cost)
         lam = np.where(better, lam / 3, lam * 10)
-        if decrease <= tol * float(cost[points].sum()):
+        if decrease <= tol * float(cost.sum()):
             break
+    X = X.copy()
+    X[ids] = x
     return X
 
 
