@@ -236,6 +236,10 @@ class Tracker:
         from mlflow.tracking import MlflowClient
 
         _quiet_mlflow()  # after the import: importing mlflow sets its own log level
+        # run id -> its artifact location, from the run's creation: MLflow's
+        # log_artifacts reads the whole run back to find it (9 of the parent's
+        # 40 ms a run, which the workers of a 2-core sweep wait for)
+        self._artifact_uris: dict[str, str] = {}
 
         with _store_errors(self.uri, "open it"):
             self.client = _open_sqlite(self.uri, database) if database is not None \
@@ -324,10 +328,12 @@ class Tracker:
         code = code or self.code
         key = claim_key(code, config_hash)
         with _store_errors(self.uri, "claim a run"):
-            mine = self.client.create_run(experiment_id, run_name=run_name, tags=self._child_tags(
-                parent_id, config_hash, code, owner, run_name)).info.run_id
+            run = self.client.create_run(experiment_id, run_name=run_name, tags=self._child_tags(
+                parent_id, config_hash, code, owner, run_name))
+            mine = run.info.run_id
             state, other = self._claim_state(experiment_id, key, known, mine)
             if state == "free":
+                self._artifact_uris[mine] = run.info.artifact_uri
                 return "won", mine
             self.client.delete_run(mine)
         return ("busy" if state == "busy" else "done"), other
@@ -472,8 +478,10 @@ class Tracker:
             experiment_id = self.experiment_id(meta["experiment"])
             tags = self._child_tags(meta["parent_id"], record.config_hash, record.code,
                                     Owner.current(), meta["run_name"])
-            run_id = self.client.create_run(experiment_id, start_time=record.start_ms, tags=tags,
-                                            run_name=meta["run_name"]).info.run_id
+            run = self.client.create_run(experiment_id, start_time=record.start_ms, tags=tags,
+                                         run_name=meta["run_name"])
+            run_id = run.info.run_id
+            self._artifact_uris[run_id] = run.info.artifact_uri
             self.log_record(run_id, record, artifacts=True)
             if claimed is not None and claimed.info.status == "RUNNING":
                 self.client.delete_run(claimed.info.run_id)  # superseded by the replayed run
@@ -496,8 +504,15 @@ class Tracker:
                            fmt="%.17g", header="stress after each iteration (row 0: the start)")
             if artifacts and record.picture is not None:  # what MLflow's UI can show
                 (folder / "comparison.png").write_bytes(np.asarray(record.picture, np.uint8).tobytes())
-            if any(folder.iterdir()):
+            location = self._artifact_uris.pop(run_id, None)
+            if not any(folder.iterdir()):
+                return
+            if location is None:  # a run this tracker did not create
                 self.client.log_artifacts(run_id, str(folder))
+            else:
+                from mlflow.store.artifact.artifact_repository_registry import get_artifact_repository
+
+                get_artifact_repository(location, tracking_uri=self.uri).log_artifacts(str(folder))
 
     def log_parent_artifacts(self, run_id: str, folder, files=None) -> None:
         """A sweep's summary report on its parent run, under ``summary/``: the
