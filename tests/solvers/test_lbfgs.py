@@ -61,3 +61,26 @@ def test_a_start_at_the_minimum_is_returned():
 def test_max_iter_is_a_hard_limit():
     result = lbfgs.minimize(_rosenbrock, np.full(6, -1.2), max_iter=3, ftol=0.0)
     assert result.nit == 3 and result.message == lbfgs.MAX_ITER and not result.converged
+
+
+
+def test_a_tolerance_that_depends_on_the_objective_applies_where_it_is_reached():
+    """refine's noisy-view rule: one tolerance above a level, another below.
+    The steps are those of a constant tolerance until the stop, which comes
+    at the first iteration whose reduction is below its objective's tolerance."""
+    start = np.full(10, -1.2)
+    history = []
+    lbfgs.minimize(_rosenbrock, start, max_iter=500, ftol=1e-15, callback=history.append)
+    f = np.array([_rosenbrock(start)[0], *history])
+    reduction = (f[:-1] - f[1:]) / np.maximum(np.maximum(abs(f[:-1]), abs(f[1:])), 1.0)
+    stops = []
+    for above, below in ((1e-2, 1e-15), (1e-15, 1e-2)):  # loose above 1, then loose below it
+        expected = 1 + int(np.flatnonzero(np.where(f[1:] > 1.0, reduction <= above,
+                                                   reduction <= below))[0])
+        result = lbfgs.minimize(_rosenbrock, start, max_iter=500,
+                                ftol=lambda value, above=above, below=below:
+                                above if value > 1.0 else below)
+        assert result.nit == expected and result.converged
+        assert result.fun == f[expected]  # the same path, stopped there
+        stops.append(expected)
+    assert stops[0] < stops[1] < len(history)  # each rule stopped somewhere else
