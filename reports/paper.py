@@ -165,13 +165,15 @@ def _generic(frame: pd.DataFrame, report: Report, varying: list[str]) -> None:
     metric against each varying key, a line per solver (and per setting of the
     other categorical keys; shapes and seeds are averaged as repeats)."""
     keys = [k for k in (varying or varying_columns(frame)) if k in frame and k not in ("seed", "solver.name")]
-    report.table(tables.summary(frame, [*keys, "method"], GENERIC_METRICS), _slug(report, "summary"),
+    # a pipeline scores what it can: COLMAP's points have no correspondences, so no ROA
+    metrics = [m for m in GENERIC_METRICS if m in frame]
+    report.table(tables.summary(frame, [*keys, "method"], metrics), _slug(report, "summary"),
                  "One row per setting and solver: mean and standard deviation over repeats; "
                  "'–' marks an option the row's solver does not have.")
     for x in _independent([k for k in keys if not k.startswith("solver.")], frame):
         others = [k for k in keys if k not in (x, "shape") and not _numeric(frame, k)]
         lines = _series(frame, others)
-        for metric in GENERIC_METRICS:
+        for metric in metrics:
             numeric = _numeric(frame, x)
             values = frame[x].dropna()
             logx = numeric and values.min() > 0 and values.max() / values.min() >= 10

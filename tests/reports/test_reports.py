@@ -214,3 +214,22 @@ def test_a_report_says_which_code_made_its_numbers(tmp_path):
            "0.1.0/aaaa (this code): 1 run(s))" in text
     table = (mixed.out / "tables" / "summary.md").read_text()
     assert table.startswith("One row per setting and solver") and "Mixes runs of 2 code versions" in table
+
+
+def test_a_sweep_without_roa_gets_its_summary_and_figures(tmp_path):
+    """COLMAP's points have no correspondences, so a sweep of colmap runs alone
+    has no ROA column: its summary shows the metrics it has (it raised a
+    KeyError, and the sweep's summary was lost)."""
+    from mpe3d.reports import paper
+
+    frame = pd.DataFrame({"status": "FINISHED", "config_hash": list("abcd"), "code": "0.1.0/aaaa",
+                          "error": "", "solver.name": "sgd", "method": "COLMAP",
+                          "images.count": [25, 50, 100, 250], "cd_x100": [5.9, 3.9, 3.5, 3.4],
+                          "emd_x100": [8.2, 6.5, 6.5, 5.9], "runtime_s": [4.4, 6.8, 12.4, 55.4]})
+    done = paper.write(tmp_path, [paper.Section("colmap-only", frame, varying=("images.count",),
+                                                code="0.1.0/aaaa")], "colmap-only")
+    table = (done.out / "tables" / "summary.md").read_text()
+    assert "CD mean" in table and "EMD mean" in table and "ROA" not in table and "55.4" in table
+    figures = {p.stem for p in (done.out / "figures").glob("*.png")}
+    assert {"cd_x100_vs_images_count", "runtime_s_vs_images_count"} <= figures
+    assert not any("roa" in name for name in figures)
