@@ -34,9 +34,9 @@ ROW_SIGMAS = 5.0
 _REJECTION_ROUNDS = 6
 # Noisy views: a descent stops at this relative decrease while the objective is
 # above _NOISY, because digits below the noise are not worth their iterations
-# (the paper's noise sweeps: a quarter of refine's time, Chamfer distances
-# equal to 1 % but for a few runs either way). Descents on clean views never
-# decrease this slowly above _NOISY in the paper's sweeps, so theirs are unchanged.
+# (50 runs of the paper's noise sweeps: 30 % of refine's time; Chamfer distances
+# within 1 % but for a few runs, either way). No descent on the clean views of
+# the paper's sweeps decreases this slowly above _NOISY: theirs are unchanged.
 NOISY_TOL = 1e-9
 _PLACING_STEPS = 10  # Gauss-Newton steps placing one point from its distance rows
 _REWEIGHTS = 3  # rounds of reweighting a weak point's rows by their misfits
