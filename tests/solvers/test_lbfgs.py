@@ -63,7 +63,6 @@ def test_max_iter_is_a_hard_limit():
     assert result.nit == 3 and result.message == lbfgs.MAX_ITER and not result.converged
 
 
-
 def test_a_tolerance_that_depends_on_the_objective_applies_where_it_is_reached():
     """refine's noisy-view rule: one tolerance above a level, another below.
     The steps are those of a constant tolerance until the stop, which comes
