@@ -10,8 +10,13 @@ import numpy as np
 # Three orthogonal views, each named by the axes it shows and the one it looks along.
 VIEWS = (("front (x, y; looking along z)", 0, 1), ("top (x, z; looking along y)", 0, 2),
          ("side (z, y; looking along x)", 2, 1))
-TRUTH_STYLE = dict(s=14, c="#9ecae1", edgecolors="none", alpha=0.7, label="ground truth")
-OURS_STYLE = dict(s=1.5, c="#b2182b", edgecolors="none", label="reconstruction (aligned)")
+# Edges of the face's colour and no width look like no edges, and they let Agg
+# stamp one rasterised marker per point (draw_markers) instead of filling each
+# point's path: 3.9 -> 0.4 ms a scatter of 1,024 points.
+TRUTH_STYLE = dict(s=14, c="#9ecae1", edgecolors="#9ecae1", linewidths=0, alpha=0.7,
+                   label="ground truth")
+OURS_STYLE = dict(s=1.5, c="#b2182b", edgecolors="#b2182b", linewidths=0,
+                  label="reconstruction (aligned)")
 
 
 def render_comparison(truth: np.ndarray, reconstruction: np.ndarray, path: Path | BinaryIO,
@@ -37,7 +42,10 @@ def render_comparison(truth: np.ndarray, reconstruction: np.ndarray, path: Path 
         for artist in dots:
             ax.draw_artist(artist)
     figure["figure"].draw_artist(figure["title"])
-    Image.fromarray(np.asarray(canvas.buffer_rgba())).save(path, format="png")
+    # opaque, so RGB; zlib level 3 encodes in half the time of the default 6,
+    # and the file is no larger
+    Image.fromarray(np.asarray(canvas.buffer_rgba())[..., :3]).save(path, format="png",
+                                                                   compress_level=3)
     return path
 
 

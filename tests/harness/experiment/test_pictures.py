@@ -32,3 +32,16 @@ def test_each_dpi_keeps_its_own_frame(tmp_path, rng):
     big = np.asarray(Image.open(tmp_path / "big.png").convert("RGB"))
     assert big.shape[0] > small.shape[0] * 1.4  # 110 against 72 dpi
     assert big.std() > 5 and small.std() > 5  # not blank
+
+
+def test_both_clouds_are_drawn_in_their_colours(rng):
+    """The truth's pale discs and the reconstruction's dark dots both reach the
+    pixels (markers stamped by Agg, with edges of no width)."""
+    truth = rng.normal(size=(400, 3))
+    pixels = _pixels(render.comparison_png(truth, truth + 2.0, "apart"))
+
+    def near(colour: str) -> int:
+        rgb = np.array([int(colour[i:i + 2], 16) for i in (1, 3, 5)])
+        return int((np.abs(pixels - rgb).sum(axis=2) < 40).sum())
+    assert near(render.OURS_STYLE["c"]) > 400  # a few pixels per dot
+    assert near("#bbdaea") > 400  # the pale discs over white (alpha 0.7)
