@@ -359,6 +359,73 @@ def row_misfits(x, P, Y, d, starts):
 
 
 @njit(cache=True, nogil=True)
+def pairwise_sum(a):
+    """np.sum(a) of a 1-D float64 array, to the bit: numpy's pairwise summation
+    (eight accumulators up to 128 entries, halves above, from 0)."""
+    n = a.shape[0]
+    if n < 8:
+        total = 0.0
+        for i in range(n):
+            total += a[i]
+        return total
+    if n <= 128:
+        r = a[:8].copy()
+        i = 8
+        while i < n - n % 8:
+            for j in range(8):
+                r[j] += a[i + j]
+            i += 8
+        total = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]))
+        for t in range(i, n):
+            total += a[t]
+        return total
+    half = n // 2
+    half -= half % 8
+    return pairwise_sum(a[:half]) + pairwise_sum(a[half:])
+
+
+@njit(cache=True, nogil=True)
+def place_point(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps):
+    """A weak point placed against its rows' anchors (rows r: entries
+    starts[r]:starts[r + 1]), as refine's ``_place_weak`` describes: each pair
+    of rows multilaterates it from every ceil(n_r / scouts)-th anchor of both,
+    the pair whose point has the lowest sum of row misfits truncated at
+    ``line`` (over those scouts of every row) wins, and ``reweights`` rounds of
+    multilateration follow, each row weighted by its inverse misfit variance
+    (floored at ``line / sigmas``), the last over all anchors. One call per
+    point: the same arithmetic, in the same order, as the NumPy loop had."""
+    n_rows = starts.shape[0] - 1
+    few_starts = np.zeros(n_rows + 1, dtype=np.int64)
+    for r in range(n_rows):
+        size = starts[r + 1] - starts[r]
+        step = -(-size // scouts)
+        few_starts[r + 1] = few_starts[r] + -(-size // step)
+    picks = np.empty(few_starts[n_rows], dtype=np.int64)
+    for r in range(n_rows):
+        step = -(-(starts[r + 1] - starts[r]) // scouts)
+        for t in range(few_starts[r + 1] - few_starts[r]):
+            picks[few_starts[r] + t] = starts[r] + t * step
+    fP, fY, fd = P[picks], Y[picks], d[picks]
+    best, best_cost = x.copy(), np.inf
+    for a in range(n_rows):
+        for b in range(a + 1, n_rows):
+            pair = np.concatenate((np.arange(few_starts[a], few_starts[a + 1]),
+                                   np.arange(few_starts[b], few_starts[b + 1])))
+            placed = multilaterate(x, fP[pair], fY[pair], fd[pair], np.ones(pair.shape[0]), steps)
+            cost = pairwise_sum(np.minimum(row_misfits(placed, fP, fY, fd, few_starts), line))
+            if cost < best_cost:
+                best, best_cost = placed, cost
+    for last in range(reweights, 0, -1):
+        uP, uY, ud, ustarts = (P, Y, d, starts) if last == 1 else (fP, fY, fd, few_starts)
+        spread = np.maximum(row_misfits(best, uP, uY, ud, ustarts), line / sigmas)
+        root = np.empty(ud.shape[0])
+        for r in range(n_rows):
+            root[ustarts[r]:ustarts[r + 1]] = np.sqrt(1.0 / (spread[r] * spread[r]))
+        best = multilaterate(best, uP, uY, ud, root, steps)
+    return best
+
+
+@njit(cache=True, nogil=True)
 def row_median_residuals(D, y0, y1, cols):
     """Per row i of a view, the median over j in ``cols`` of |D_ij - e_ij|:
     each observation's misfit, one row at a time (no n x n temporary).

@@ -11,8 +11,6 @@ correspondences.
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
 from mpe3d.solvers import kernels, lbfgs
@@ -266,21 +264,10 @@ def _place_weak(stress, X, P, weak, rejected, total) -> np.ndarray:
                 if position[k, i] >= 0 and len(cols)]
         if len(rows) < 2:
             continue
-        scouts = [(Pk[::-(-len(d) // _SCOUTS)], Y[::-(-len(d) // _SCOUTS)], d[::-(-len(d) // _SCOUTS)])
-                  for Pk, Y, d in rows]
-        few = _stack(scouts)
-        best, best_cost = X[i], np.inf
-        for a, b in itertools.combinations(range(len(rows)), 2):
-            x = _multilaterate(X[i], _stack([scouts[a], scouts[b]]))
-            cost = np.minimum(_row_misfits(x, few), line).sum()
-            if cost < best_cost:
-                best, best_cost = x, cost
-        rows = _stack(rows)
-        for last in range(_REWEIGHTS, 0, -1):  # each row weighted by its inverse misfit variance
-            using = rows if last == 1 else few
-            weights = 1.0 / np.maximum(_row_misfits(best, using), line / ROW_SIGMAS) ** 2
-            best = _multilaterate(best, using, weights)
-        X[i] = best
+        # one compiled call per point: the Python around the scouting of each pair
+        # of its views was half of this function's time
+        X[i] = kernels.place_point(np.asarray(X[i], dtype=np.float64), *_stack(rows), float(line),
+                                   ROW_SIGMAS, _SCOUTS, _REWEIGHTS, _PLACING_STEPS)
     return X
 
 
@@ -301,19 +288,6 @@ def _stack(rows):
     return (np.ascontiguousarray(np.concatenate([Pk for Pk, _, _ in rows])),
             np.concatenate([Y for _, Y, _ in rows]), np.concatenate([d for _, _, d in rows]),
             np.concatenate([[0], np.cumsum(sizes)]))
-
-
-def _row_misfits(x, stacked) -> np.ndarray:
-    P, Y, d, starts = stacked
-    return kernels.row_misfits(np.asarray(x, dtype=np.float64), P, Y, d, starts)
-
-
-def _multilaterate(x, stacked, weights=None) -> np.ndarray:
-    """The point whose projected distances to the rows' anchors fit theirs
-    (least squares, each row's residuals weighted), by Gauss-Newton from x."""
-    P, Y, d, starts = stacked
-    root = np.ones(len(d)) if weights is None else np.repeat(np.sqrt(weights), np.diff(starts))
-    return kernels.multilaterate(np.asarray(x, dtype=np.float64), P, Y, d, root, _PLACING_STEPS)
 
 
 def _weak(stress, rejected) -> np.ndarray:

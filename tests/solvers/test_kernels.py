@@ -83,6 +83,61 @@ def test_multilateration_in_one_view_falls_back_to_least_squares(rng):
     assert np.allclose(got, _gauss_newton(start, P, Y, d, root, 10), atol=1e-10)
 
 
+def test_pairwise_sum_is_numpys_sum_to_the_bit(rng):
+    for n in (0, 1, 5, 7, 8, 9, 16, 17, 127, 128, 129, 300, 1000):
+        for _ in range(20):
+            a = rng.random(n) * 10.0 ** rng.integers(-6, 6, n)
+            assert kernels.pairwise_sum(a) == np.sum(a), n
+
+
+def _placed_by_numpy(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps):
+    """Refine's former placement of a weak point (a Python loop over the pairs
+    of its rows around the compiled multilateration), for reference."""
+    rows = [(P[a:b], Y[a:b], d[a:b]) for a, b in zip(starts[:-1], starts[1:])]
+
+    def stack(parts):
+        sizes = [len(part[2]) for part in parts]
+        return (np.ascontiguousarray(np.concatenate([p[0] for p in parts])),
+                np.concatenate([p[1] for p in parts]), np.concatenate([p[2] for p in parts]),
+                np.concatenate([[0], np.cumsum(sizes)]))
+
+    def placed(x, stacked, weights=None):
+        P, Y, d, starts = stacked
+        root = np.ones(len(d)) if weights is None else np.repeat(np.sqrt(weights), np.diff(starts))
+        return kernels.multilaterate(x, P, Y, d, root, steps)
+
+    scout_rows = [tuple(a[::-(-len(r[2]) // scouts)] for a in r) for r in rows]
+    few = stack(scout_rows)
+    best, best_cost = x, np.inf
+    for a in range(len(rows)):
+        for b in range(a + 1, len(rows)):
+            point = placed(x, stack([scout_rows[a], scout_rows[b]]))
+            cost = np.minimum(kernels.row_misfits(point, *few), line).sum()
+            if cost < best_cost:
+                best, best_cost = point, cost
+    every = stack(rows)
+    for last in range(reweights, 0, -1):
+        using = every if last == 1 else few
+        best = placed(best, using, 1.0 / np.maximum(kernels.row_misfits(best, *using), line / sigmas) ** 2)
+    return best
+
+
+@pytest.mark.parametrize("n_rows", [2, 3, 9])
+def test_placing_a_point_in_one_call_is_the_numpy_loop_to_the_bit(rng, n_rows):
+    from mpe3d.solvers.sgd import random_projections
+
+    sizes = rng.integers(1, 200, size=n_rows)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    P = np.ascontiguousarray(np.repeat(random_projections(n_rows, rng), sizes, axis=0))
+    point = rng.normal(size=3)
+    Y = np.einsum("nij,nj->ni", P, rng.normal(size=(starts[-1], 3)))
+    d = np.linalg.norm(np.einsum("nij,j->ni", P, point) - Y, axis=1) + 0.01 * rng.normal(size=starts[-1])
+    d[starts[1]:starts[2]] *= 1.5  # a corrupted row
+    for start in (point + 0.3 * rng.normal(size=3), rng.normal(size=3)):
+        args = (start, P, Y, d, starts, 0.05, 5.0, 64, 3, 10)
+        assert np.array_equal(kernels.place_point(*args), _placed_by_numpy(*args))
+
+
 def test_pinv_psd_is_pinv_on_good_and_degenerate_systems(rng):
     A = rng.normal(size=(500, 4, 3))
     M = np.einsum("nai,naj->nij", A, A)
