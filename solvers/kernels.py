@@ -790,8 +790,7 @@ def warm(loss: str = "l2") -> None:
     guttman_pass(np.ones((3, 3)), np.eye(3), np.empty((3, 3)))
     P, d = np.zeros((3, 2, 3)), np.ones(3)
     P[:, 0, 0] = P[:, 1, 1] = 1.0
-    multilaterate(np.zeros(3), P, Y, d, d, 1)
-    row_misfits(np.zeros(3), P, Y, d, np.array([0, 3]))
+    place_point(np.zeros(3), P, Y, d, np.array([0, 1, 3]), 1.0, 5.0, 64, 1, 1)  # refine's weak points
     row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
     # two views of one parameter and one shared: V is (2 * 1 + 1) square
     reduced_system(np.eye(3), np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]), np.empty((2, 2, 1, 1)))
