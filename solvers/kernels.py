@@ -396,15 +396,14 @@ def place_point(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps):
     point: the same arithmetic, in the same order, as the NumPy loop had."""
     n_rows = starts.shape[0] - 1
     few_starts = np.zeros(n_rows + 1, dtype=np.int64)
-    for r in range(n_rows):
-        size = starts[r + 1] - starts[r]
-        step = -(-size // scouts)
-        few_starts[r + 1] = few_starts[r] + -(-size // step)
-    picks = np.empty(few_starts[n_rows], dtype=np.int64)
+    picks = np.empty(starts[n_rows], dtype=np.int64)  # enough for every row's scouts
     for r in range(n_rows):
         step = -(-(starts[r + 1] - starts[r]) // scouts)
-        for t in range(few_starts[r + 1] - few_starts[r]):
+        count = -(-(starts[r + 1] - starts[r]) // step)
+        few_starts[r + 1] = few_starts[r] + count
+        for t in range(count):
             picks[few_starts[r] + t] = starts[r] + t * step
+    picks = picks[:few_starts[n_rows]]
     fP, fY, fd = P[picks], Y[picks], d[picks]
     best, best_cost = x.copy(), np.inf
     for a in range(n_rows):
