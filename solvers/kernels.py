@@ -29,8 +29,12 @@ kernel has one signature and one compilation.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from numba import njit
+
+from mpe3d.solvers.threads import even_split, map_in_order
 
 # Loss codes, and the names a solver's ``loss`` option gives them.
 L2, HUBER, SOFT_L1 = 0, 1, 2
@@ -661,38 +665,24 @@ def _add_both_orders(block, ya, yb):
 
 
 @njit(cache=True, nogil=True)
-def schur_products(Y, view, starts, B):
-    """The blocks of S = sum over points i of Y_i^T Y_i: Y (T, 3, c) holds each
-    observation's U_i^-1/2 W_t, grouped by point (point i's observations are
-    rows starts[i]:starts[i + 1]); its first ``per_view`` columns belong to the
-    observation's ``view``, the rest are shared by all views (a lens).
-
-    Fills B (K, K, per_view, per_view), a workspace kept between calls (its
-    pages stay mapped: a fresh 18 MB array at 250 views cost more page faults
-    than the sums), with B[k, l] the block of views k and l, and returns it
-    with C[k] the block of view k and the shared columns and D the shared one. A
-    point's pair of views is summed once, into B[k, l] for its observations in
-    the order given (the caller adds the transposes; an observation's own block
-    B[k, k] is whole); the shared columns of a point's observations are summed
-    first, so the view-lens and lens blocks cost m_i, not m_i^2.
-
-    The pairs are visited view by view (each view's observations in point
-    order, each with the later observations of its point), so that the blocks
-    written, B[k, :], are one view's row: 72 KB at 250 views, which stays in
-    cache, where a pass point by point wrote all over B's 18 MB (1.1-1.3x on 250
-    views). Every block still sums its points in increasing order, so S is the
-    same to the bit."""
-    n_views, per_view = B.shape[0], B.shape[2]
+def schur_order(Y, view, starts, n_views, per_view):
+    """The view-independent part of :func:`schur_rows`: each observation's
+    point, each point's sum of its observations' shared columns (``totals``),
+    the shared block D of S, each view's observations in point order (a
+    stable counting sort: ``order``, view k's at ``first[k]:first[k + 1]``),
+    and each view's share of the pairs (``work``, to split the views among
+    threads)."""
     n_points, T = len(starts) - 1, len(view)
     ns = Y.shape[2] - per_view
-    C = np.zeros((n_views, per_view, ns))
     D = np.zeros((ns, ns))
     totals = np.zeros((n_points, 3, ns))
     point = np.empty(T, dtype=np.int64)  # each observation's
+    work = np.zeros(n_views)
     for i in range(n_points):
         total = totals[i]
         for a in range(starts[i], starts[i + 1]):
             point[a] = i
+            work[view[a]] += starts[i + 1] - a
             for j in range(3):
                 for s in range(ns):
                     total[j, s] += Y[a, j, per_view + s]
@@ -700,7 +690,6 @@ def schur_products(Y, view, starts, B):
             for u in range(ns):
                 D[s, u] += total[0, s] * total[0, u] + total[1, s] * total[1, u] \
                     + total[2, s] * total[2, u]
-    # each view's observations in point order (a counting sort, stable)
     first = np.zeros(n_views + 1, dtype=np.int64)
     for a in range(T):
         first[view[a] + 1] += 1
@@ -710,9 +699,40 @@ def schur_products(Y, view, starts, B):
     for a in range(T):
         order[fill[view[a]]] = a
         fill[view[a]] += 1
-    for k in range(n_views):
+    return point, totals, D, order, first, work
+
+
+@njit(cache=True, nogil=True)
+def schur_rows(Y, Z, view, starts, point, totals, order, first, B, C, k0, k1):
+    """Rows k0:k1 of the blocks of S = sum over points i of Y_i^T Y_i: Y (T, 3,
+    c) holds each observation's U_i^-1/2 W_t, grouped by point (point i's
+    observations are rows starts[i]:starts[i + 1]); its first ``per_view``
+    columns belong to the observation's ``view``, the rest are shared by all
+    views (a lens); Z is Y's per-view columns, contiguous. ``point``,
+    ``totals``, ``order`` and ``first`` are :func:`schur_order`'s.
+
+    Fills B[k] (B: (K, K, per_view, per_view), a workspace kept between
+    calls, whose pages stay mapped: a fresh 18 MB array at 250 views cost more
+    page faults than the sums) with B[k, l] the block of views k and l, and
+    C[k] with the block of view k and the shared columns. A point's pair of
+    views is summed once, into B[k, l] for its observations in the order
+    given (the caller adds the transposes; an observation's own block B[k, k]
+    is whole); the shared columns of a point's observations were summed first
+    (``totals``), so the view-lens blocks cost m_i, not m_i^2.
+
+    The pairs are visited view by view (each view's observations in point
+    order, each with the later observations of its point), so that the blocks
+    written, B[k, :], are one view's row: 72 KB at 250 views, which stays in
+    cache, where a pass point by point wrote all over B's 18 MB (1.1-1.3x on
+    250 views). Every block still sums its points in increasing order, and
+    only row k's pass writes B[k] and C[k]: however the rows are split among
+    threads, S is the same to the bit."""
+    per_view = B.shape[2]
+    ns = Y.shape[2] - per_view
+    for k in range(k0, k1):
         row = B[k]
         row[:] = 0.0
+        C[k] = 0.0
         for o in range(first[k], first[k + 1]):
             a = order[o]
             total = totals[point[a]]
@@ -720,7 +740,21 @@ def schur_products(Y, view, starts, B):
                 y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
                 for s in range(ns):
                     C[k, p, s] += y0 * total[0, s] + y1 * total[1, s] + y2 * total[2, s]
-            for b in range(a, starts[point[a] + 1]):
+            end = starts[point[a] + 1]
+            if per_view == 6:  # a loop of its own: the test inside it cost the unrolling
+                for b in range(a, end):
+                    vb = view[b]
+                    block = row[vb]
+                    if b != a and vb == k:
+                        _add_both_orders(block, Y[a], Y[b])
+                        continue
+                    zb = Z[b]
+                    for p in range(6):
+                        y0, y1, y2 = Z[a, 0, p], Z[a, 1, p], Z[a, 2, p]
+                        for q in range(6):
+                            block[p, q] += y0 * zb[0, q] + y1 * zb[1, q] + y2 * zb[2, q]
+                continue
+            for b in range(a, end):
                 block = row[view[b]]
                 if b != a and view[b] == k:  # the point seen twice in a view: the
                     _add_both_orders(block, Y[a], Y[b])  # transpose lands here too
@@ -729,26 +763,33 @@ def schur_products(Y, view, starts, B):
                     y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
                     for q in range(per_view):
                         block[p, q] += y0 * Y[b, 0, q] + y1 * Y[b, 1, q] + y2 * Y[b, 2, q]
-    return B, C, D
 
 
-def reduced_system(V, Y, view, starts, blocks: np.ndarray) -> np.ndarray:
+def reduced_system(V, Y, view, starts, blocks: np.ndarray, threads: int = 1) -> np.ndarray:
     """The upper triangle of the reduced camera system S = V - sum_i Y_i^T Y_i,
     columns per_view * k + p for view k's parameter p, then the shared ones,
-    from :func:`schur_products`' blocks (``blocks``: its (K, K, per_view,
-    per_view) workspace); S's lower triangle is V's (Cholesky reads the upper
-    one)."""
+    from :func:`schur_rows`' blocks (``blocks``: its (K, K, per_view,
+    per_view) workspace), on up to ``threads`` threads, each a range of views
+    of about equal work (the same bits for any count); S's lower triangle is
+    V's (Cholesky reads the upper one)."""
     K, pv = blocks.shape[0], blocks.shape[2]
     size = K * pv + Y.shape[2] - pv
     if V.shape != (size, size) or blocks.shape != (K, K, pv, pv):  # the kernels index unchecked
         raise ValueError(f"reduced_system: V {V.shape} and blocks {blocks.shape} do not fit "
                          f"{K} views of {pv} parameters and {Y.shape[2] - pv} shared")
-    return _subtract_blocks(V.copy(), *schur_products(Y, view, starts, blocks))
+    point, totals, D, order, first, work = schur_order(Y, view, starts, K, pv)
+    C = np.empty((K, pv, Y.shape[2] - pv))
+    bounds = even_split(work, threads)
+    ranges = list(zip(bounds[:-1], bounds[1:]))
+    Z = np.ascontiguousarray(Y[:, :, :pv])
+    rows = functools.partial(schur_rows, Y, Z, view, starts, point, totals, order, first, blocks, C)
+    map_in_order(lambda bounds: rows(*bounds), ranges, len(ranges))  # the kernel releases the GIL
+    return _subtract_blocks(V.copy(), blocks, C, D)
 
 
 @njit(cache=True, nogil=True)
 def _subtract_blocks(S, B, C, D):
-    """S's upper triangle less the symmetric matrix of :func:`schur_products`'
+    """S's upper triangle less the symmetric matrix of :func:`schur_rows`'
     blocks, in one pass along S's rows: each pair of views was summed on one
     side (B[k, l] or B[l, k]), so its block is their sum; a view's own block is
     whole. Only the upper triangle: the dense matrix's column writes cost as

@@ -21,11 +21,13 @@ from mpe3d.harness.experiment.result import Pipeline, RunResult
 from mpe3d.harness.scene.observe import seed_streams
 from mpe3d.harness.tracking.identity import run_code
 from mpe3d.harness.tracking.records import RunRecord
+from mpe3d.solvers import threads
 
 # BLAS sums in another order with another thread count, which moves results by
 # an ulp or more; one thread everywhere (CLI, sweep parent, loky and dask
 # workers) makes every run bit-identical wherever it runs. Sweeps get their
-# parallelism from running several runs at once.
+# parallelism from running several runs at once, so our own solver passes
+# (whose bits do not depend on their thread count) take one thread too.
 BLAS_THREADS = 1
 
 
@@ -63,7 +65,7 @@ def expected_work(config: RunConfig) -> float:
 def run(config: RunConfig) -> RunResult:
     """Run ``config``; the solver only ever sees the observations."""
     check_run_memory(config)  # before sampling: refuse what cannot fit, in one line
-    with threadpool_limits(limits=BLAS_THREADS):
+    with threadpool_limits(limits=BLAS_THREADS), threads.limit(BLAS_THREADS):
         return _run(config)
 
 

@@ -14,6 +14,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
+from mpe3d.solvers import threads
 from mpe3d.solvers.kernels import reduced_system
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
@@ -175,7 +176,8 @@ def _reduced_system(V, U_damped, W, structure):
     values, vectors = np.linalg.eigh(U_damped)
     root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
     Y = np.matmul(root[structure.point_by_point], W[structure.by_point])  # (T, 3, c), by point
-    return reduced_system(V, Y, structure.view_by_point, structure.point_starts, structure.blocks)
+    return reduced_system(V, Y, structure.view_by_point, structure.point_starts, structure.blocks,
+                          threads.count())
 
 
 def _damped_step(U, V, W, g_x, g_c, lam, structure, point):

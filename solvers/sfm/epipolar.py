@@ -33,6 +33,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import csr_matrix
 
+from mpe3d.solvers.threads import InTurn, map_in_order
+
 SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged
 MIN_COMMON = 12  # points two views must share to be tested together
 # matches a pair needs for its fundamental matrix (7 degrees of freedom) to
@@ -67,8 +69,7 @@ def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_view
     # a pinhole pair's wrong match can sit on the affine hyperplane and off the
     # true epipolar lines: where the pair has matches enough to fix its
     # fundamental matrix, that test votes too
-    epipolar = [off_epipolar_lines(q, sigmas=sigmas, floor=floor, rng=rng)
-                if len(q) >= MIN_FUNDAMENTAL else None for q in matches]
+    epipolar = _off_epipolar_lines_each(matches, sigmas, floor, rng)
     far = [f if e is None else f | e for f, e in zip(far, epipolar)]
     flags, tests = np.zeros(len(view)), np.zeros(len(view))
     for (ta, tb), f in zip(tested, far):
@@ -134,6 +135,33 @@ def _sampson(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs(algebraic) / np.sqrt(np.maximum(gradient, 1e-300))
 
 
+def _off_epipolar_lines_each(matches, sigmas, floor, rng) -> list:
+    """:func:`off_epipolar_lines` of each pair with MIN_FUNDAMENTAL matches or
+    more (None for the others), on :func:`~mpe3d.solvers.threads.count`
+    threads, each pair's random numbers drawn in the pairs' order."""
+    tested = [i for i, q in enumerate(matches) if len(q) >= MIN_FUNDAMENTAL]
+    turns = InTurn()
+
+    def test(number, q):
+        with turns.turn(number):
+            draws = _epipolar_draws(len(q), rng, 2 * TRIALS)
+        return _off_epipolar_lines(q, draws, sigmas, floor)
+
+    off = map_in_order(lambda job: test(*job), enumerate(matches[i] for i in tested))
+    epipolar = [None] * len(matches)
+    for i, f in zip(tested, off):
+        epipolar[i] = f
+    return epipolar
+
+
+def _epipolar_draws(n: int, rng, trials: int):
+    """The random numbers :func:`off_epipolar_lines` uses for n matches, in
+    the order it has always drawn them: the matches scored, then the
+    samples' keys."""
+    scored = np.arange(n) if n <= _SCORED else np.sort(rng.choice(n, _SCORED, replace=False))
+    return scored, rng.random((trials, len(scored)))
+
+
 def off_epipolar_lines(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float = 0.0,
                        rng=None, trials: int = 2 * TRIALS) -> np.ndarray:
     """(n,) bool: the matches (rows of q: x_a, y_a, x_b, y_b) off the two views'
@@ -144,6 +172,11 @@ def off_epipolar_lines(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float = 
     near the best, twice; a match is off beyond ``sigmas`` robust sigmas of
     the Sampson distance and ``floor`` pixels."""
     rng = np.random.default_rng(0) if rng is None else rng
+    return _off_epipolar_lines(q, _epipolar_draws(len(q), rng, trials), sigmas, floor)
+
+
+def _off_epipolar_lines(q, draws, sigmas, floor) -> np.ndarray:
+    """:func:`off_epipolar_lines` with its random numbers drawn (``draws``)."""
     n = len(q)
     Ta, Tb = _normalising(q[:, :2]), _normalising(q[:, 2:])
     a = np.c_[q[:, :2], np.ones(n)] @ Ta.T
@@ -151,8 +184,9 @@ def off_epipolar_lines(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float = 
     # samples drawn and scored among _SCORED matches at most, as the affine test
     # does: a pair of a million-point scene shares 375,000 (a trials x n array
     # each is 600 MB); the fits to the matches near the best use them all
-    scored = np.arange(n) if n <= _SCORED else np.sort(rng.choice(n, _SCORED, replace=False))
-    picks = scored[np.argsort(rng.random((trials, len(scored))), axis=1)[:, :8]]
+    scored, keys = draws
+    trials = len(keys)
+    picks = scored[np.argsort(keys, axis=1)[:, :8]]
     F = _fundamentals(a[picks], b[picks], np.ones((trials, 8)))
     distance = _sampson(F, a[None, scored], b[None, scored])  # (trials, scored)
     sigma = np.maximum(np.median(distance, axis=1) / _MAD, 1e-12)
@@ -211,14 +245,32 @@ def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0
     buckets = np.ceil(np.log2(np.maximum(sizes, 1))).astype(int)  # pad to at most twice
     # large ones alone: numpy's overhead is nothing there, and unpadded medians partition
     buckets = np.where(sizes > _STACKED, -1 - np.arange(len(qs)), buckets)
-    if len(np.unique(buckets)) > 1:
-        far = [None] * len(qs)
-        for bucket in np.unique(buckets):
-            members = np.flatnonzero(buckets == bucket)
-            for i, f in zip(members, off_affine_subspaces([qs[i] for i in members], sigmas=sigmas,
-                                                          floor=floor, rng=rng, dim=dim)):
-                far[i] = f
-        return far
+    groups = [np.flatnonzero(buckets == bucket) for bucket in np.unique(buckets)]
+    turns = InTurn()
+
+    def test(number, members):
+        stack = [qs[i] for i in members]
+        with turns.turn(number):  # each bucket's random numbers in the buckets' order
+            draws = _affine_draws(sizes[members], rng, dim)
+        return _off_affine_subspaces(stack, draws, sigmas, floor, dim)
+
+    far = [None] * len(qs)
+    for members, result in zip(groups, map_in_order(lambda job: test(*job), enumerate(groups))):
+        for i, f in zip(members, result):
+            far[i] = f
+    return far
+
+
+def _affine_draws(sizes, rng, dim: int):
+    """The random numbers :func:`_off_affine_subspaces` uses for a stack of
+    arrays of ``sizes`` rows: the rows each array is scored on, then each
+    sample's rows (as fractions of the array's length)."""
+    scored = [rng.choice(n, _SCORED, replace=False) if n > _SCORED else None for n in sizes]
+    return scored, rng.random((len(sizes), TRIALS, dim + 1))
+
+
+def _off_affine_subspaces(qs, draws, sigmas, floor, dim) -> list:
+    """:func:`off_affine_subspaces` of one stack, its random numbers drawn."""
     Q, valid = _padded(qs)
     counts = valid.sum(axis=1)
     centre = _masked_median(Q, valid[:, :, None], axis=1)
@@ -226,10 +278,11 @@ def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0
                            np.repeat(valid, Q.shape[2], axis=1), axis=1)
     scale = np.where(scale > 0, scale, 1.0)
     Q = (Q - centre[:, None]) / scale[:, None, None]  # conditioned: distances of O(1)
-    scored, scored_valid = _padded([q[rng.choice(len(q), _SCORED, replace=False)]
-                                    if len(q) > _SCORED else q for q in _unpadded(Q, counts)])
+    chosen, fractions = draws
+    scored, scored_valid = _padded([q if rows is None else q[rows]
+                                    for q, rows in zip(_unpadded(Q, counts), chosen)])
     # a repeated row gives a bad fit: harmless
-    picks = (rng.random((len(Q), TRIALS, dim + 1)) * counts[:, None, None]).astype(int)
+    picks = (fractions * counts[:, None, None]).astype(int)
     samples = np.take_along_axis(Q[:, None], picks[..., None], axis=2)  # (B, S, dim + 1, d)
     means = samples.mean(axis=2)
     normals = _least_spread(samples - means[:, :, None], dim)  # (B, S, d - dim, d)

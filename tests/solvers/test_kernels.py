@@ -163,11 +163,13 @@ def test_grouped_products_equal_the_per_row_ones(rng):
     assert np.allclose(gram_by_group(Y, group, 5), [Y[group == g].T @ Y[group == g] for g in range(5)])
 
 
-def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng):
+@pytest.mark.parametrize("per_view", [4, 6])  # 6 has a loop of its own
+def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng, per_view):
     """S = V - Y^T Y for Y stacking each point's 3 rows over its observations'
     camera columns; a shared column (a lens for all views) recurs in a row, and
-    a point seen twice in one view (a conflicting track) meets itself there."""
-    n_points, n_views, per_view = 30, 6, 4
+    a point seen twice in one view (a conflicting track) meets itself there.
+    Split by views among threads, it is the same bits."""
+    n_points, n_views = 30, 6
     point = np.sort(rng.integers(0, n_points, size=120))
     view = rng.integers(0, n_views, size=120)  # in any order within a point, repeats too
     assert any(len(set(view[point == i])) < np.sum(point == i) for i in range(n_points))
@@ -184,6 +186,9 @@ def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng):
     upper = np.triu_indices(size)
     assert np.allclose(S[upper], (V - dense.T @ dense)[upper], rtol=1e-12, atol=1e-12)
     assert np.array_equal(np.tril(S, -1), np.tril(V, -1))  # Cholesky reads the upper triangle only
+    for threads in (2, 3, 8):
+        assert np.array_equal(kernels.reduced_system(V, Y, view, starts, np.full(
+            (n_views, n_views, per_view, per_view), np.nan), threads), S)
     # the compiled loops index unchecked: a V that does not fit is refused, not written past
     # (kernels.warm() once passed a 2 x 2 V for a 3 x 3 system, and the heap it corrupted
     # crashed sweep workers in the garbage collector, at random)

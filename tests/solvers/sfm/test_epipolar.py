@@ -98,3 +98,22 @@ def test_views_too_far_apart_to_be_paired_flag_nothing(rng):
     view, point, z = _scene(rng)
     few = point < 10  # fewer than MIN_COMMON points shared by any two views
     assert not epipolar_outliers(view[few], point[few], z[few], K, N).any()
+
+
+def test_the_flags_are_the_same_bits_on_any_number_of_threads(rng):
+    """The pairs are tested on threads, each pair's random numbers drawn in the
+    pairs' order: stacked small pairs, pairs tested alone (over 256 matches)
+    and the fundamental-matrix test all give what one thread gives."""
+    from mpe3d.solvers import threads
+
+    n = 400
+    view, point, z = random_views(rng, "perspective", n, K, turn=0.6, noise=0.5, keep=0.8)[2:]
+    keep = (point < 300) | (view < 3)  # some pairs share over 256 points, some far fewer
+    view, point, z = view[keep], point[keep], z[keep]
+    corrupted, _ = _swap(view, z, 0.05, rng)
+    with threads.limit(1):
+        one = epipolar_outliers(view, point, corrupted, K, n)
+    with threads.limit(4):
+        four = epipolar_outliers(view, point, corrupted, K, n)
+    assert one.sum() > 10
+    assert np.array_equal(one, four)
