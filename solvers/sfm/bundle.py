@@ -80,6 +80,9 @@ _FOCAL_STARTS = (1.0, 2.0, 4.0)
 _SCOUT = 8  # iterations from each start before the best is chosen, at most
 _RACE = (2, 4, _SCOUT)  # the stages of that race (iterations done after each)
 _RACE_RATIO = 2.0  # a start this many times the best's RMS after a stage is dropped
+# points a race is run on, at most: enough to rank starts 2x apart, and the
+# race's iterations then cost what 1,000 points cost, however many there are
+_RACE_POINTS = 1000
 START_ITERATIONS = 20  # the scaled fit's when it is only a pinhole's start
 _ROUND_TOL = 1e-6  # between two rounds of dropping wrong matches
 _TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins in turn
@@ -411,16 +414,22 @@ def _best_of(starts, tracks, lm_options):
     every iteration here costs a full reduced camera system: the six pinhole
     starts' 48 scouting iterations were 17 s of 55 on 250 cameras x 3,000
     points. Scouts stop at a relative decrease of ``_ROUND_TOL``: the race
-    only ranks them.
+    only ranks them. Over ``_RACE_POINTS`` placed points the race runs on
+    that many of them, evenly spread (:func:`_race_points`), and the others are
+    placed for the winner's cameras before its solve on all: a 2x lead shows
+    on 1,000 points as on 3,000, at a third of the cost an iteration (250
+    cameras x 3,000 points: 37 -> 31 s, the same final RMS to 15 digits).
     """
     scout = {**lm_options, "tol": max(lm_options["tol"], _ROUND_TOL)}
     racing = [(Fit(*start, np.empty(0), False), extra) for start, extra in starts]
+    raced = _race_points(tracks)
+    race_tracks = tracks if raced is None else tracks.subset(raced[tracks.point])
     done = 0
     for stage in _RACE:
         budget = min(stage, lm_options["max_iter"]) - done
         if budget <= 0:
             break
-        racing = [(_continued(fit, tracks, {**scout, "max_iter": budget}), extra)
+        racing = [(_continued(fit, race_tracks, {**scout, "max_iter": budget}), extra)
                   for fit, extra in racing]
         done += budget
         best = min(fit.history[-1] for fit, _ in racing)
@@ -428,12 +437,27 @@ def _best_of(starts, tracks, lm_options):
         if len(racing) == 1:
             break
     scouting, extra = min(racing, key=lambda f: f[0].history[-1])
+    if raced is not None:  # the points left out of the race, placed for the cameras it reached
+        scouting = scouting._replace(X=adjusted_points(scouting.X, scouting.cameras, tracks,
+                                                       _placed(tracks, slice(None)) & ~raced))
     # the winner solved to the end without its points of weak geometry (see _peeled)
     weak = _weak_points(scouting, tracks, np.ones(len(tracks.view), dtype=bool))[0]
     fit = _continued(scouting._replace(converged=False), tracks.subset(~weak[tracks.point]), lm_options)
     if weak.any():
         fit = fit._replace(X=adjusted_points(fit.X, fit.cameras, tracks, weak))
     return fit, extra
+
+
+def _race_points(tracks) -> np.ndarray | None:
+    """(N,) bool: the placed points a race of starts is run on, _RACE_POINTS
+    of them evenly spread over the point indices; None when there are no more
+    than that (the race runs on all)."""
+    ids = np.flatnonzero(_placed(tracks, slice(None)))
+    if len(ids) <= _RACE_POINTS:
+        return None
+    raced = np.zeros(tracks.n_points, dtype=bool)
+    raced[ids[np.linspace(0, len(ids) - 1, _RACE_POINTS).round().astype(int)]] = True
+    return raced
 
 
 def _continued(fit, tracks, lm_options):
