@@ -1,6 +1,7 @@
 """Solvers for the 3DMPE stress, behind one interface (see :mod:`mpe3d.solvers.base`).
 
-The stress side (base, stress, kernels, linalg, starts, the solvers) imports
+The stress side (base, stress, kernels, linalg, starts, the solvers; threads,
+the thread count their threaded passes may use, at the bottom) imports
 nothing above it; :mod:`mpe3d.solvers.sfm`, the keypoint stack, sits on top
 of it. Neither imports the harness or the reports.
 """

@@ -82,7 +82,7 @@ _RACE = (2, 4, _SCOUT)  # the stages of that race (iterations done after each)
 _RACE_RATIO = 2.0  # a start this many times the best's RMS after a stage is dropped
 # points a race is run on, at most: enough to rank starts 2x apart, and the
 # race's iterations then cost what 1,000 points cost, however many there are
-_RACE_POINTS = 1000
+RACE_POINTS = 1000
 START_ITERATIONS = 20  # the scaled fit's when it is only a pinhole's start
 _ROUND_TOL = 1e-6  # between two rounds of dropping wrong matches
 _TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins in turn
@@ -414,15 +414,15 @@ def _best_of(starts, tracks, lm_options):
     every iteration here costs a full reduced camera system: the six pinhole
     starts' 48 scouting iterations were 17 s of 55 on 250 cameras x 3,000
     points. Scouts stop at a relative decrease of ``_ROUND_TOL``: the race
-    only ranks them. Over ``_RACE_POINTS`` placed points the race runs on
-    that many of them, evenly spread (:func:`_race_points`), and the others are
+    only ranks them. Over ``RACE_POINTS`` placed points the race runs on
+    that many of them, evenly spread (:func:`race_points`), and the others are
     placed for the winner's cameras before its solve on all: a 2x lead shows
     on 1,000 points as on 3,000, at a third of the cost an iteration (250
     cameras x 3,000 points: 37 -> 31 s, the same final RMS to 15 digits).
     """
     scout = {**lm_options, "tol": max(lm_options["tol"], _ROUND_TOL)}
     racing = [(Fit(*start, np.empty(0), False), extra) for start, extra in starts]
-    raced = _race_points(tracks)
+    raced = race_points(tracks)
     race_tracks = tracks if raced is None else tracks.subset(raced[tracks.point])
     done = 0
     for stage in _RACE:
@@ -448,15 +448,15 @@ def _best_of(starts, tracks, lm_options):
     return fit, extra
 
 
-def _race_points(tracks) -> np.ndarray | None:
-    """(N,) bool: the placed points a race of starts is run on, _RACE_POINTS
+def race_points(tracks) -> np.ndarray | None:
+    """(N,) bool: the placed points a race of starts is run on, RACE_POINTS
     of them evenly spread over the point indices; None when there are no more
     than that (the race runs on all)."""
     ids = np.flatnonzero(_placed(tracks, slice(None)))
-    if len(ids) <= _RACE_POINTS:
+    if len(ids) <= RACE_POINTS:
         return None
     raced = np.zeros(tracks.n_points, dtype=bool)
-    raced[ids[np.linspace(0, len(ids) - 1, _RACE_POINTS).round().astype(int)]] = True
+    raced[ids[np.linspace(0, len(ids) - 1, RACE_POINTS).round().astype(int)]] = True
     return raced
 
 

@@ -295,7 +295,7 @@ def test_the_radial_camera_estimates_a_lens_distortion_the_pinhole_absorbs(rng):
 
 
 def test_a_race_on_a_share_of_many_points_reaches_the_minimum_the_whole_race_reaches(rng, monkeypatch):
-    """Over _RACE_POINTS placed points the starts race on an even share of
+    """Over RACE_POINTS placed points the starts race on an even share of
     them and the rest are placed for the winner's cameras: the solve ends at
     the cost the race on all points reaches."""
     from tests.helpers import random_views
@@ -303,11 +303,11 @@ def test_a_race_on_a_share_of_many_points_reaches_the_minimum_the_whole_race_rea
     n, k = 1500, 8
     X, _, view, point, z = random_views(rng, "perspective", n, k, turn=0.5, noise=0.5, keep=0.8)
     tracks = bundle.Tracks(view, point, z, n, k)
-    raced = bundle._race_points(tracks)
-    assert raced.sum() == bundle._RACE_POINTS and raced[0] and raced[-1]
+    raced = bundle.race_points(tracks)
+    assert raced.sum() == bundle.RACE_POINTS and raced[0] and raced[-1]
     assert np.all(np.diff(np.flatnonzero(raced)) <= 2)  # spread over all of them
     shared = bundle.bundle_adjust(tracks, "perspective")
-    monkeypatch.setattr(bundle, "_RACE_POINTS", n)
+    monkeypatch.setattr(bundle, "RACE_POINTS", n)
     whole = bundle.bundle_adjust(tracks, "perspective")
     rms = [np.sqrt(np.mean(np.sum(f.residuals[~f.dropped] ** 2, axis=1))) for f in (shared, whole)]
     assert rms[0] == pytest.approx(rms[1], rel=1e-6)
