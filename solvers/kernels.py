@@ -765,6 +765,9 @@ def schur_rows(Y, Z, view, starts, point, totals, order, first, B, C, k0, k1):
                         block[p, q] += y0 * Y[b, 0, q] + y1 * Y[b, 1, q] + y2 * Y[b, 2, q]
 
 
+_THREADED_PAIRS = 100_000  # about 5 ms of schur_rows: threads for more
+
+
 def reduced_system(V, Y, view, starts, blocks: np.ndarray, threads: int = 1) -> np.ndarray:
     """The upper triangle of the reduced camera system S = V - sum_i Y_i^T Y_i,
     columns per_view * k + p for view k's parameter p, then the shared ones,
@@ -779,7 +782,8 @@ def reduced_system(V, Y, view, starts, blocks: np.ndarray, threads: int = 1) -> 
                          f"{K} views of {pv} parameters and {Y.shape[2] - pv} shared")
     point, totals, D, order, first, work = schur_order(Y, view, starts, K, pv)
     C = np.empty((K, pv, Y.shape[2] - pv))
-    bounds = even_split(work, threads)
+    # below _THREADED_PAIRS pairs the threads' start costs more than they share
+    bounds = even_split(work, threads if work.sum() >= _THREADED_PAIRS else 1)
     ranges = list(zip(bounds[:-1], bounds[1:]))
     Z = np.ascontiguousarray(Y[:, :, :pv])
     rows = functools.partial(schur_rows, Y, Z, view, starts, point, totals, order, first, blocks, C)

@@ -164,7 +164,7 @@ def test_grouped_products_equal_the_per_row_ones(rng):
 
 
 @pytest.mark.parametrize("per_view", [4, 6])  # 6 has a loop of its own
-def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng, per_view):
+def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng, per_view, monkeypatch):
     """S = V - Y^T Y for Y stacking each point's 3 rows over its observations'
     camera columns; a shared column (a lens for all views) recurs in a row, and
     a point seen twice in one view (a conflicting track) meets itself there.
@@ -186,6 +186,7 @@ def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng, per_vi
     upper = np.triu_indices(size)
     assert np.allclose(S[upper], (V - dense.T @ dense)[upper], rtol=1e-12, atol=1e-12)
     assert np.array_equal(np.tril(S, -1), np.tril(V, -1))  # Cholesky reads the upper triangle only
+    monkeypatch.setattr(kernels, "_THREADED_PAIRS", 0)  # threads however small the system
     for threads in (2, 3, 8):
         assert np.array_equal(kernels.reduced_system(V, Y, view, starts, np.full(
             (n_views, n_views, per_view, per_view), np.nan), threads), S)
