@@ -82,7 +82,10 @@ class _Structure:
             [[0], np.cumsum(np.bincount(tracks.point, minlength=tracks.n_points))])
         # a view's observations share their camera columns: its block of the
         # camera system is one c x c product, placed at these columns
-        self.view_rows = [np.flatnonzero(tracks.view == k) for k in range(K)]  # once, not per step
+        # once, not per step; one stable sort, not K scans of every observation
+        # (250 views: 10 ms of each solve's set-up), the same index arrays
+        self.view_rows = np.split(np.argsort(tracks.view, kind="stable"),
+                                  np.cumsum(np.bincount(tracks.view, minlength=K))[:-1])
         self.view_cols = [np.concatenate([pv * k + np.arange(pv), K * pv + np.arange(ns)])
                           for k in range(K)]
 
