@@ -437,7 +437,8 @@ def _best_of(starts, tracks, lm_options):
         if len(racing) == 1:
             break
     scouting, extra = min(racing, key=lambda f: f[0].history[-1])
-    if raced is not None:  # the points left out of the race, placed for the cameras it reached
+    if raced is not None and len(scouting.history) > 1:  # cameras moved: the points left
+        # out of the race placed for the cameras it reached
         scouting = scouting._replace(X=adjusted_points(scouting.X, scouting.cameras, tracks,
                                                        _placed(tracks, slice(None)) & ~raced))
     # the winner solved to the end without its points of weak geometry (see _peeled)
