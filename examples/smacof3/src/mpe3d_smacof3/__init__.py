@@ -86,24 +86,33 @@ def _b_matrix(Y: np.ndarray, D: np.ndarray) -> np.ndarray:
     return B
 
 
-def _x_step(X, P, views, n: int, tol: float) -> np.ndarray:
+def _normal_parts(P, views, n: int):
+    """What H takes from the projections: M_k = P^k^T P^k, the visibility as a
+    K x n matrix, each point's own 3x3 block sum_k n_k M_k, and the inverse of
+    H's diagonal blocks sum_k (n_k - 1) M_k (the block-Jacobi preconditioner).
+    Fixed projections give them once for every X step."""
+    M = np.transpose(P, (0, 2, 1)) @ P
+    seen = np.zeros((len(views), n))
+    for k, (ids, _) in enumerate(views):
+        seen[k, ids] = 1.0
+    own = np.einsum("kn,k,kij->nij", seen, seen.sum(axis=1), M)
+    diagonal = own - np.einsum("kn,kij->nij", seen, M)
+    return M, seen, own, np.linalg.pinv(diagonal + np.eye(3) / n**2, hermitian=True)
+
+
+def _x_step(X, P, views, n: int, tol: float, parts=None) -> np.ndarray:
     """The three-way Guttman transform: solve H vec(X') = sum_k vec(B_k(X) X M_k)."""
-    M = [Pk.T @ Pk for Pk in P]
+    M, seen, own, inverse = parts if parts is not None else _normal_parts(P, views, n)
     rhs = np.zeros_like(X)
-    blocks = np.zeros((n, 3, 3))
     for (ids, D), Pk, Mk in zip(views, P, M):
         rhs[ids] += (_b_matrix(X[ids] @ Pk.T, D) @ X[ids]) @ Mk
-        blocks[ids] += (len(ids) - 1) * Mk
 
     def apply(v: np.ndarray) -> np.ndarray:
+        # sum_k over the views' points of (n_k V - 1 1^T V) M_k, every view at once
         V = v.reshape(n, 3)
-        out = np.zeros_like(V)
-        for (ids, _), Mk in zip(views, M):
-            Vk = V[ids]
-            out[ids] += (len(ids) * Vk - Vk.sum(axis=0)) @ Mk
+        out = np.einsum("nij,nj->ni", own, V) - seen.T @ np.einsum("kj,kji->ki", seen @ V, M)
         return (out + V.mean(axis=0) / n).ravel()  # the mean term pins the translation
 
-    inverse = np.linalg.pinv(blocks + np.eye(3) / n**2, hermitian=True)
     operator = LinearOperator((3 * n, 3 * n), matvec=apply, dtype=float)
     precondition = LinearOperator((3 * n, 3 * n), dtype=float,
                                   matvec=lambda v: np.einsum("nij,nj->ni", inverse, v.reshape(n, 3)).ravel())
@@ -169,8 +178,9 @@ def smacof3(observations, *, random_state, max_iter: int = 300, tol: float = 1e-
 def _majorize(X, P, views, max_iter: int, tol: float, free: bool):
     """SMACOF steps until a step gains less than ``tol`` of the stress."""
     history = [_stress(X, P, views)]
+    parts = None if free else _normal_parts(P, views, len(X))
     for _ in range(max_iter):
-        X = _x_step(X, P, views, len(X), tol=1e-10)
+        X = _x_step(X, P, views, len(X), tol=1e-10, parts=parts)
         if free:
             P = _p_step(X, P, views)
         history.append(_stress(X, P, views))
@@ -191,9 +201,9 @@ def _turn(free: np.ndarray, given: np.ndarray, rounds: int = 50) -> np.ndarray:
     best, best_gap = np.eye(3), np.inf
     for Q in _cube_frames():
         for _ in range(rounds):
-            R = [_polar(Pf @ Q.T @ Pg.T) for Pf, Pg in zip(free, given)]
-            Q = _polar(sum((Rk @ Pg).T @ Pf for Rk, Pf, Pg in zip(R, free, given)))
-        gap = sum(float(np.sum((Pf - Rk @ Pg @ Q) ** 2)) for Rk, Pf, Pg in zip(R, free, given))
+            R = _polar(free @ Q.T @ np.transpose(given, (0, 2, 1)))  # every view's R_k at once
+            Q = _polar(np.einsum("kai,kaj->ij", R @ given, free))
+        gap = float(np.sum((free - R @ given @ Q) ** 2))
         if gap < best_gap:
             best, best_gap = Q, gap
     return best
@@ -208,5 +218,6 @@ def _cube_frames() -> list[np.ndarray]:
 
 
 def _polar(A: np.ndarray) -> np.ndarray:
+    """The orthogonal polar factor of A (or of each matrix in a stack)."""
     U, _, Vt = np.linalg.svd(A)
     return U @ Vt
