@@ -3,11 +3,10 @@ import os
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
 
-from tests.helpers import REPO
+from tests.helpers import REPO, mpe3d_command
 
 
 def test_keypoints_to_cloud_recovers_the_shape(tmp_path):
@@ -20,45 +19,35 @@ def test_keypoints_to_cloud_recovers_the_shape(tmp_path):
     assert dropped > 0 and error < 0.01, out.stdout  # half-pixel noise on an object ~800 px wide
 
 
-def _fresh_venv(folder):
-    """A new virtual environment that installs mpe3d and the example package
-    itself; mpe3d's dependencies come from this interpreter's site-packages
-    (.pth lines: no download), never mpe3d itself."""
-    subprocess.run([sys.executable, "-m", "venv", str(folder)], check=True, timeout=300)
-    python = folder / "bin" / "python"
-    site = subprocess.run([str(python), "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
-                          capture_output=True, text=True, check=True).stdout.strip()
-    outer = [p for p in sys.path if p.rstrip("/").endswith(("site-packages", "dist-packages")) and Path(p).is_dir()]
-    (Path(site) / "outer_dependencies.pth").write_text("\n".join(outer) + "\n")
-    return python
-
-
-@pytest.mark.slow  # a venv, two installs, a tiny reproduction: the full suite runs it
+@pytest.mark.slow  # a wheel, an install, a tiny reproduction: the full suite runs it
 def test_the_example_plugin_installs_keeps_the_contract_and_joins_every_table(tmp_path):
-    wheels = tmp_path / "wheels"  # built as the wheel test builds ours, then installed there
+    wheels = tmp_path / "wheels"  # built and installed as a user's pip does
     build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps",
-                            "-w", str(wheels), str(REPO), str(REPO / "examples" / "smacof3")],
+                            "-w", str(wheels), str(REPO / "examples" / "smacof3")],
                            capture_output=True, text=True, timeout=600)
     assert build.returncode == 0, build.stderr
-    python = _fresh_venv(tmp_path / "venv")
-    # --ignore-installed: the mpe3d that the .pth line shows (this environment's) is
-    # neither used nor touched; the venv gets its own
-    install = subprocess.run([str(python), "-m", "pip", "install", "--quiet", "--no-deps", "--ignore-installed",
-                              *map(str, wheels.glob("*.whl"))], capture_output=True, text=True, timeout=600)
+    # Into a folder of its own on PYTHONPATH: this environment is not touched, and
+    # the plug-in meets the mpe3d installed here (its kernels compiled once; the
+    # wheel test installs mpe3d itself into a fresh venv)
+    plugins = tmp_path / "plugins"
+    install = subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps", "--target",
+                              str(plugins), *map(str, wheels.glob("*.whl"))], capture_output=True, text=True,
+                             timeout=600)
     assert install.returncode == 0, install.stderr
-    where = subprocess.run([str(python), "-c", "import mpe3d, mpe3d_smacof3; print(mpe3d.__file__)"],
-                           capture_output=True, text=True)
-    assert where.stdout.startswith(str(tmp_path / "venv")), where.stdout + where.stderr
-    mpe3d = str(tmp_path / "venv" / "bin" / "mpe3d")
-    env = {**os.environ, "PYTHONWARNINGS": "ignore"}
+    env = {**os.environ, "PYTHONWARNINGS": "ignore",
+           "PYTHONPATH": os.pathsep.join([str(plugins), *filter(None, [os.environ.get("PYTHONPATH")])])}
     env.pop("MLFLOW_TRACKING_URI", None)
-    listed = subprocess.run([mpe3d, "solvers"], capture_output=True, text=True, env=env, timeout=300)
+    where = subprocess.run([sys.executable, "-c", "import mpe3d, mpe3d_smacof3; print(mpe3d_smacof3.__file__)"],
+                           capture_output=True, text=True, env=env)
+    assert where.stdout.startswith(str(plugins)), where.stdout + where.stderr
+    mpe3d = mpe3d_command()
+    listed = subprocess.run([*mpe3d, "solvers"], capture_output=True, text=True, env=env, timeout=300)
     assert "from plug-in smacof3 (mpe3d-smacof3 0.1.0, entry point" in listed.stdout, listed.stdout
-    check = subprocess.run([mpe3d, "check-solver", "smacof3"], capture_output=True, text=True, env=env,
+    check = subprocess.run([*mpe3d, "check-solver", "smacof3"], capture_output=True, text=True, env=env,
                            timeout=600)
     assert check.returncode == 0 and "smacof3: 9 of 9 checks pass" in check.stdout, check.stdout
     out = tmp_path / "report"
-    paper = subprocess.run([mpe3d, "reproduce-paper", "--scale", "tiny", "--solver", "smacof3", "--quiet",
+    paper = subprocess.run([*mpe3d, "reproduce-paper", "--scale", "tiny", "--solver", "smacof3", "--quiet",
                             "--no-artifacts",
                             "--tracking-uri", f"sqlite:///{tmp_path}/t.db", "--out", str(out)],
                            capture_output=True, text=True, env=env, timeout=900, cwd=tmp_path)
