@@ -759,10 +759,11 @@ def schur_rows(Y, Z, view, starts, point, totals, order, first, B, C, k0, k1):
                 if b != a and view[b] == k:  # the point seen twice in a view: the
                     _add_both_orders(block, Y[a], Y[b])  # transpose lands here too
                     continue
+                zb = Z[b]
                 for p in range(per_view):
-                    y0, y1, y2 = Y[a, 0, p], Y[a, 1, p], Y[a, 2, p]
+                    y0, y1, y2 = Z[a, 0, p], Z[a, 1, p], Z[a, 2, p]
                     for q in range(per_view):
-                        block[p, q] += y0 * Y[b, 0, q] + y1 * Y[b, 1, q] + y2 * Y[b, 2, q]
+                        block[p, q] += y0 * zb[0, q] + y1 * zb[1, q] + y2 * zb[2, q]
 
 
 _THREADED_PAIRS = 100_000  # about 5 ms of schur_rows: threads for more
@@ -787,7 +788,7 @@ def reduced_system(V, Y, view, starts, blocks: np.ndarray, threads: int = 1) -> 
     ranges = list(zip(bounds[:-1], bounds[1:]))
     Z = np.ascontiguousarray(Y[:, :, :pv])
     rows = functools.partial(schur_rows, Y, Z, view, starts, point, totals, order, first, blocks, C)
-    map_in_order(lambda bounds: rows(*bounds), ranges, len(ranges))  # the kernel releases the GIL
+    map_in_order(lambda views: rows(*views), ranges, len(ranges))  # the kernel releases the GIL
     return _subtract_blocks(V.copy(), blocks, C, D)
 
 

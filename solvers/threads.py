@@ -63,6 +63,23 @@ def map_in_order(func: Callable, items: Iterable, threads: int | None = None) ->
         return list(pool.map(func, items))
 
 
+def map_drawn(draw: Callable, func: Callable, items: Iterable, threads: int | None = None) -> list:
+    """[func(item, draw(item)) for item in items], on up to ``threads`` threads
+    (:func:`map_in_order`), every ``draw(item)`` called in the items' order:
+    ``draw`` takes an item's random numbers from one generator, so each item
+    gets the numbers it gets on one thread, and the result is the same bits
+    for any thread count."""
+    turns = InTurn()
+
+    def job(numbered):
+        number, item = numbered
+        with turns.turn(number):
+            drawn = draw(item)
+        return func(item, drawn)
+
+    return map_in_order(job, enumerate(items), threads)
+
+
 def even_split(work: np.ndarray, parts: int) -> np.ndarray:
     """Bounds 0 = b_0 <= ... <= b_m = len(work) of at most ``parts`` ranges of
     about equal total ``work``."""
@@ -76,10 +93,10 @@ def even_split(work: np.ndarray, parts: int) -> np.ndarray:
 
 class InTurn:
     """Sections entered in the order of their numbers 0, 1, 2, ..., whichever
-    thread runs them: the random draws of jobs run by :func:`map_in_order`,
-    taken from one generator in the jobs' order, so that every job gets the
-    numbers it gets on one thread. (The map starts the jobs in order, so the
-    job a section waits for has always started.)"""
+    thread runs them (:func:`map_drawn` uses it): the random draws of jobs run
+    by :func:`map_in_order`, taken from one generator in the jobs' order, so
+    that every job gets the numbers it gets on one thread. (The map starts the
+    jobs in order, so the job a section waits for has always started.)"""
 
     def __init__(self) -> None:
         self._next = 0

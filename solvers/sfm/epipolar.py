@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import csr_matrix
 
-from mpe3d.solvers.threads import InTurn, map_in_order
+from mpe3d.solvers.threads import map_drawn
 
 SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged
 MIN_COMMON = 12  # points two views must share to be tested together
@@ -140,14 +140,8 @@ def _off_epipolar_lines_each(matches, sigmas, floor, rng) -> list:
     more (None for the others), on :func:`~mpe3d.solvers.threads.count`
     threads, each pair's random numbers drawn in the pairs' order."""
     tested = [i for i, q in enumerate(matches) if len(q) >= MIN_FUNDAMENTAL]
-    turns = InTurn()
-
-    def test(number, q):
-        with turns.turn(number):
-            draws = _epipolar_draws(len(q), rng, 2 * TRIALS)
-        return _off_epipolar_lines(q, draws, sigmas, floor)
-
-    off = map_in_order(lambda job: test(*job), enumerate(matches[i] for i in tested))
+    off = map_drawn(lambda q: _epipolar_draws(len(q), rng, 2 * TRIALS),
+                    lambda q, draws: _off_epipolar_lines(q, draws, sigmas, floor), [matches[i] for i in tested])
     epipolar = [None] * len(matches)
     for i, f in zip(tested, off):
         epipolar[i] = f
@@ -246,16 +240,11 @@ def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0
     # large ones alone: numpy's overhead is nothing there, and unpadded medians partition
     buckets = np.where(sizes > _STACKED, -1 - np.arange(len(qs)), buckets)
     groups = [np.flatnonzero(buckets == bucket) for bucket in np.unique(buckets)]
-    turns = InTurn()
-
-    def test(number, members):
-        stack = [qs[i] for i in members]
-        with turns.turn(number):  # each bucket's random numbers in the buckets' order
-            draws = _affine_draws(sizes[members], rng, dim)
-        return _off_affine_subspaces(stack, draws, sigmas, floor, dim)
-
     far = [None] * len(qs)
-    for members, result in zip(groups, map_in_order(lambda job: test(*job), enumerate(groups))):
+    tested = map_drawn(lambda members: _affine_draws(sizes[members], rng, dim),  # in the buckets' order
+                       lambda members, draws: _off_affine_subspaces([qs[i] for i in members], draws,
+                                                                    sigmas, floor, dim), groups)
+    for members, result in zip(groups, tested):
         for i, f in zip(members, result):
             far[i] = f
     return far
