@@ -145,7 +145,30 @@ def install(source: Path, site: Path) -> dict:
     shutil.rmtree(site, ignore_errors=True)
     subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
                     "--target", str(site), str(source)], check=True, capture_output=True, timeout=600)
+    share_compiled_kernels(site)
     return {"PYTHONPATH": str(site)}
+
+
+def share_compiled_kernels(site: Path) -> None:
+    """Give the installed copy the compiled kernels of the mpe3d under test,
+    where its source is the same bytes: numba keys its on-disk cache on the
+    source file's path and stamp (mtime, size), so a copy elsewhere compiles
+    every kernel again (~25 s) for no test's sake. Left as is where the
+    sources differ, or when numba's cache layout changes: that copy compiles."""
+    import mpe3d
+
+    ours = Path(mpe3d.__file__).parent
+    for cache in ours.rglob("__pycache__/*.nbi"):
+        source = cache.parent.parent / (cache.name.split(".", 1)[0] + ".py")
+        copy = site / "mpe3d" / source.relative_to(ours)
+        if not source.is_file() or not copy.is_file() or copy.read_bytes() != source.read_bytes():
+            continue
+        stamp = source.stat()
+        os.utime(copy, ns=(stamp.st_atime_ns, stamp.st_mtime_ns))
+        (copy.parent / "__pycache__").mkdir(exist_ok=True)
+        for data in cache.parent.glob(cache.name.rsplit(".", 2)[0] + ".*.nbc"):
+            shutil.copy2(data, copy.parent / "__pycache__" / data.name)
+        shutil.copy2(cache, copy.parent / "__pycache__" / cache.name)
 
 
 @pytest.mark.slow  # a real sweep or server: the full suite runs it
