@@ -33,6 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import csr_matrix
 
+from mpe3d.solvers.kernels import sampson_costs
 from mpe3d.solvers.threads import map_drawn
 
 SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged
@@ -180,12 +181,10 @@ def _off_epipolar_lines(q, draws, sigmas, floor) -> np.ndarray:
     # each is 600 MB); the fits to the matches near the best use them all
     scored, keys = draws
     trials = len(keys)
-    picks = scored[np.argsort(keys, axis=1)[:, :8]]
+    picks = scored[_smallest(keys, 8)]
     F = _fundamentals(a[picks], b[picks], np.ones((trials, 8)))
-    distance = _sampson(F, a[None, scored], b[None, scored])  # (trials, scored)
-    sigma = np.maximum(np.median(distance, axis=1) / _MAD, 1e-12)
-    cost = np.minimum(distance / sigma[:, None], sigmas).sum(axis=1) + len(scored) * np.log(sigma)
-    best = F[np.argmin(cost)]
+    capped, sigma = sampson_costs(F, a[scored], b[scored], _MAD, float(sigmas))
+    best = F[np.argmin(capped + len(scored) * np.log(sigma))]
     for _ in range(2):
         distance = _sampson(best, a, b)
         near = distance <= sigmas * max(np.median(distance) / _MAD, 1e-12)
@@ -196,6 +195,16 @@ def _off_epipolar_lines(q, draws, sigmas, floor) -> np.ndarray:
     sigma = np.median(distance) / _MAD
     pixels = distance / (0.5 * (Ta[0, 0] + Tb[0, 0]))  # the conditioning's scale undone
     return (distance > sigmas * sigma) & (pixels > floor)
+
+
+def _smallest(keys: np.ndarray, m: int) -> np.ndarray:
+    """(S, m): the columns of each row's m smallest keys, smallest first (the
+    first m of its argsort, for distinct keys), by a partition and a sort of
+    m: a full argsort of 200 x 2,000 keys cost 1 s of 250 views' test."""
+    if keys.shape[1] <= m:
+        return np.argsort(keys, axis=1)
+    first = np.argpartition(keys, m - 1, axis=1)[:, :m]
+    return np.take_along_axis(first, np.argsort(np.take_along_axis(keys, first, axis=1), axis=1), axis=1)
 
 
 def _pairs(view, point, n_views, n_points):

@@ -3,6 +3,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from mpe3d.solvers.kernels import sampson_costs
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.epipolar import epipolar_outliers
 from tests.helpers import SHARED, random_views
@@ -117,3 +118,28 @@ def test_the_flags_are_the_same_bits_on_any_number_of_threads(rng):
         four = epipolar_outliers(view, point, corrupted, K, n)
     assert one.sum() > 10
     assert np.array_equal(one, four)
+
+
+
+def test_the_compiled_msac_scores_are_the_numpy_formulas_to_rounding(rng):
+    """sampson_costs against the numpy formulation it replaced (Sampson
+    distances of each sample's fundamental matrix, their robust sigma, the
+    capped sum), on noisy matches of two pinhole views, a tenth of them wrong."""
+    view, _, z = _scene(rng, "perspective", noise=1.0)
+    corrupted, _ = _swap(view, z, 0.1, rng)
+    q = np.hstack([corrupted[view == 0][:80], corrupted[view == 1][:80]])
+    a, b = (np.c_[q[:, cols], np.ones(len(q))] / 500 for cols in (slice(0, 2), slice(2, 4)))
+    picks = np.argsort(rng.random((200, len(q))), axis=1)[:, :8]
+    rows = (b[picks][..., :, None] * a[picks][..., None, :]).reshape(200, 8, 9)
+    F = np.linalg.svd(rows)[2][:, -1].reshape(200, 3, 3)  # eight-point samples, rank 3: no matter
+    lines_b, lines_a = a[None] @ np.swapaxes(F, 1, 2), b[None] @ F
+    distance = np.abs(np.sum(b * lines_b, axis=2)) / np.sqrt(
+        lines_b[..., 0] ** 2 + lines_b[..., 1] ** 2 + lines_a[..., 0] ** 2 + lines_a[..., 1] ** 2)
+    sigma = np.maximum(np.median(distance, axis=1) / 0.6745, 1e-12)
+    capped = np.minimum(distance / sigma[:, None], 10.0).sum(axis=1)
+    got_capped, got_sigma = sampson_costs(F, a, b, 0.6745, 10.0)
+    np.testing.assert_allclose(got_sigma, sigma, rtol=1e-12)
+    np.testing.assert_allclose(got_capped, capped, rtol=1e-12)
+    cost = capped + len(q) * np.log(sigma)
+    assert np.argmin(got_capped + len(q) * np.log(got_sigma)) == np.argmin(cost)
+    assert len(np.unique(np.round(cost, 6))) > 100  # samples that score differently: a real test
