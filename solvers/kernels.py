@@ -524,6 +524,51 @@ def sampson_costs(F, a, b, mad, cap):
     return totals, sigmas
 
 
+@njit(cache=True, nogil=True)
+def subspace_costs(rows, counts, means, normals, mad, cap):
+    """The MSAC scores of RANSAC's affine subspaces on a padded stack of rows
+    (B, n, d), the first counts[b] of each real: per sample s of stack b
+    (its mean (B, S, d) and orthonormal complement normals (B, S, c, d)) the
+    rows' distances to the subspace, their robust sigma = max(median / mad,
+    1e-12) and the sum of min(distance / sigma, cap) over the padded row (the
+    padding adds zeros, as the numpy formulation summed them). Returns the
+    (B, S) sums and sigmas; the caller adds the count times numpy's log.
+
+    One sample at a time: none of the (B, S, n, c) projections numpy formed,
+    and the GIL free for the pair threads. A distance may differ from the
+    einsum formulation's in its last bits, and with it a score."""
+    B, n, d = rows.shape
+    S, c = normals.shape[1], normals.shape[2]
+    totals, sigmas = np.zeros((B, S)), np.empty((B, S))
+    distance, work, offset = np.empty(n), np.empty(n), np.empty(c)
+    for b in range(B):
+        m = counts[b]
+        for s in range(S):
+            normal, mean = normals[b, s], means[b, s]
+            if m == 0:
+                sigmas[b, s] = np.inf
+                continue
+            for k in range(c):
+                offset[k] = 0.0
+                for j in range(d):
+                    offset[k] += mean[j] * normal[k, j]
+            for i in range(m):
+                squares = 0.0
+                for k in range(c):
+                    along = 0.0
+                    for j in range(d):
+                        along += rows[b, i, j] * normal[k, j]
+                    squares += (along - offset[k]) ** 2
+                distance[i] = np.sqrt(squares)
+                work[i] = distance[i]
+            sigma = max(median_in_place(work[:m]) / mad, 1e-12)
+            for i in range(n):
+                work[i] = min(distance[i] / sigma, cap) if i < m else 0.0
+            totals[b, s] = pairwise_sum(work)
+            sigmas[b, s] = sigma
+    return totals, sigmas
+
+
 _NONE_F = np.empty(0)
 _NONE_MASK1 = np.empty(0, dtype=np.bool_)
 _NONE_MASK2 = np.empty((0, 0), dtype=np.bool_)
@@ -881,6 +926,7 @@ def warm(loss: str = "l2") -> None:
     affine_als(np.array([0, 1]), np.array([0, 0]), np.ones((2, 2)), np.zeros((1, 3)),
                np.ones(2, dtype=np.bool_), 2, 1, 0.0, 0.0)
     sampson_costs(np.ones((1, 3, 3)), np.ones((2, 3)), np.ones((2, 3)), 1.0, 1.0)
+    subspace_costs(np.ones((1, 2, 4)), np.array([2]), np.ones((1, 1, 4)), np.ones((1, 1, 1, 4)), 1.0, 1.0)
     warmed = True
 
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import csr_matrix
 
-from mpe3d.solvers.kernels import sampson_costs
+from mpe3d.solvers.kernels import sampson_costs, subspace_costs
 from mpe3d.solvers.threads import map_drawn
 
 SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged
@@ -284,14 +284,10 @@ def _off_affine_subspaces(qs, draws, sigmas, floor, dim) -> list:
     samples = np.take_along_axis(Q[:, None], picks[..., None], axis=2)  # (B, S, dim + 1, d)
     means = samples.mean(axis=2)
     normals = _least_spread(samples - means[:, :, None], dim)  # (B, S, d - dim, d)
-    along = np.einsum("bnd,bscd->bsnc", scored, normals) \
-        - np.einsum("bsd,bscd->bsc", means, normals)[:, :, None]
-    distance = np.linalg.norm(along, axis=3)  # (B, S, n)
-    mask = scored_valid[:, None]
-    sigma = np.maximum(_masked_median(distance, mask, axis=2) / _MAD, 1e-12)  # (B, S)
-    cost = np.where(mask, np.minimum(distance / sigma[..., None], sigmas), 0).sum(axis=2) \
-        + scored_valid.sum(axis=1)[:, None] * np.log(sigma)
-    best = np.argmin(cost, axis=1)
+    counts_scored = scored_valid.sum(axis=1)
+    capped, sigma = subspace_costs(scored, counts_scored, means, np.ascontiguousarray(normals), _MAD,
+                                   float(sigmas))
+    best = np.argmin(capped + counts_scored[:, None] * np.log(sigma), axis=1)
     mean, normal = means[np.arange(len(Q)), best], normals[np.arange(len(Q)), best]
     for _ in range(3):  # total least squares on the rows close to it
         distance = _distances(Q, mean, normal)

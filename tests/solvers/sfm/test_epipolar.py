@@ -3,7 +3,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mpe3d.solvers.kernels import sampson_costs
+from mpe3d.solvers.kernels import sampson_costs, subspace_costs
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.epipolar import epipolar_outliers
 from tests.helpers import SHARED, random_views
@@ -143,3 +143,27 @@ def test_the_compiled_msac_scores_are_the_numpy_formulas_to_rounding(rng):
     cost = capped + len(q) * np.log(sigma)
     assert np.argmin(got_capped + len(q) * np.log(got_sigma)) == np.argmin(cost)
     assert len(np.unique(np.round(cost, 6))) > 100  # samples that score differently: a real test
+
+
+def test_the_compiled_subspace_scores_are_the_numpy_formulas_to_rounding(rng):
+    """subspace_costs against the einsum formulation it replaced, on a padded
+    stack of three arrays of rows (one of them empty of wrong rows, one short)
+    and random 3- and 2-dimensional subspaces of R^4."""
+    counts = np.array([60, 23, 41])
+    rows = np.zeros((3, 60, 4))
+    for b, m in enumerate(counts):
+        rows[b, :m] = rng.normal(size=(m, 4)) * [1, 1, 1, 0.01] + (rng.random((m, 1)) < 0.1) * 3
+    valid = np.arange(60) < counts[:, None]
+    for dim in (3, 2):
+        means = rng.normal(size=(3, 50, 4))
+        normals = np.linalg.qr(rng.normal(size=(3, 50, 4, 4)))[0][..., :4 - dim].swapaxes(-1, -2).copy()
+        along = np.einsum("bnd,bscd->bsnc", rows, normals) - np.einsum("bsd,bscd->bsc", means, normals)[:, :, None]
+        distance = np.linalg.norm(along, axis=3)
+        median = np.array([[np.median(distance[b, s, :counts[b]]) for s in range(50)] for b in range(3)])
+        sigma = np.maximum(median / 0.6745, 1e-12)
+        capped = np.where(valid[:, None], np.minimum(distance / sigma[..., None], 10.0), 0).sum(axis=2)
+        got_capped, got_sigma = subspace_costs(rows, counts, means, normals, 0.6745, 10.0)
+        np.testing.assert_allclose(got_sigma, sigma, rtol=1e-12)
+        np.testing.assert_allclose(got_capped, capped, rtol=1e-12)
+        assert (np.argmin(got_capped + counts[:, None] * np.log(got_sigma), axis=1)
+                == np.argmin(capped + counts[:, None] * np.log(sigma), axis=1)).all()
