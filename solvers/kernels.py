@@ -1,6 +1,7 @@
 """Compiled passes: the 3DMPE stress (paper Eq. 1) one view at a time, SMACOF's
-Guttman transform, placing one point against anchors, and the Schur term of
-bundle adjustment's reduced camera system.
+Guttman transform, placing one point against anchors, the Schur term of
+bundle adjustment's reduced camera system, and the RANSAC scores of the
+two-view tests of wrong matches.
 
 For each pair i < j of a view the stress kernel forms the image distance
 e_ij = ||y_i - y_j||, the residual r_ij = D_ij - e_ij, its weight
