@@ -486,6 +486,18 @@ def median_in_place(a):
     return (a[k] + np.min(a[k + 1:])) / 2
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _msac_score(distance, m, work, mad, cap):
+    """(capped sum, sigma) of the first m distances (of ``work``'s length,
+    the rest counted as zeros, as numpy summed a padded row): sigma =
+    max(median / mad, 1e-12), the sum of min(distance / sigma, cap) in
+    numpy's pairwise order. ``work`` is scratch."""
+    work[:m] = distance[:m]
+    sigma = max(median_in_place(work[:m]) / mad, 1e-12)
+    for i in range(work.shape[0]):
+        work[i] = min(distance[i] / sigma, cap) if i < m else 0.0
+    return pairwise_sum(work), sigma
+
 
 @njit(cache=True, nogil=True)
 def sampson_costs(F, a, b, mad, cap):
@@ -516,12 +528,7 @@ def sampson_costs(F, a, b, mad, cap):
             m1 = b0 * f[0, 1] + b1 * f[1, 1] + b2 * f[2, 1]
             gradient = l0 * l0 + l1 * l1 + m0 * m0 + m1 * m1
             d[i] = abs(b0 * l0 + b1 * l1 + b2 * l2) / np.sqrt(max(gradient, 1e-300))
-            work[i] = d[i]
-        sigma = max(median_in_place(work) / mad, 1e-12)
-        for i in range(n):
-            work[i] = min(d[i] / sigma, cap)
-        totals[s] = pairwise_sum(work)
-        sigmas[s] = sigma
+        totals[s], sigmas[s] = _msac_score(d, n, work, mad, cap)
     return totals, sigmas
 
 
@@ -561,12 +568,7 @@ def subspace_costs(rows, counts, means, normals, mad, cap):
                         along += rows[b, i, j] * normal[k, j]
                     squares += (along - offset[k]) ** 2
                 distance[i] = np.sqrt(squares)
-                work[i] = distance[i]
-            sigma = max(median_in_place(work[:m]) / mad, 1e-12)
-            for i in range(n):
-                work[i] = min(distance[i] / sigma, cap) if i < m else 0.0
-            totals[b, s] = pairwise_sum(work)
-            sigmas[b, s] = sigma
+            totals[b, s], sigmas[b, s] = _msac_score(distance, m, work, mad, cap)
     return totals, sigmas
 
 

@@ -120,7 +120,6 @@ def test_the_flags_are_the_same_bits_on_any_number_of_threads(rng):
     assert np.array_equal(one, four)
 
 
-
 def test_the_compiled_msac_scores_are_the_numpy_formulas_to_rounding(rng):
     """sampson_costs against the numpy formulation it replaced (Sampson
     distances of each sample's fundamental matrix, their robust sigma, the
