@@ -33,7 +33,9 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 from mpe3d.solvers.threads import even_split, map_in_order
 
@@ -597,6 +599,111 @@ def view_stress(pairs, D, Y, mask, alpha, loss: int, scale: float, want_grad: bo
     return total, grad
 
 
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a * b + c rounded once (LLVM's fma): the step BLAS's double kernels chain."""
+    def codegen(context, builder, signature, args):
+        d = ir.DoubleType()
+        return builder.call(builder.module.declare_intrinsic("llvm.fma", [d], ir.FunctionType(d, [d, d, d])),
+                            args)
+    return types.float64(types.float64, types.float64, types.float64), codegen
+
+
+# OpenBLAS's double GEMM splits a long inner dimension into blocks of at most this
+# many terms (GEMM_Q), a split rounded to its unroll of 4, and adds each block's
+# sum into the result: :func:`l2_views` sums G^T X the same way.
+_GEMM_Q, _GEMM_UNROLL = 256, 4
+
+
+@njit(cache=True, nogil=True)
+def _gemm_block(k):
+    """The length of OpenBLAS's next inner block when ``k`` terms are left."""
+    if k >= 2 * _GEMM_Q:
+        return _GEMM_Q
+    if k > _GEMM_Q:
+        return (k // 2 + _GEMM_UNROLL - 1) // _GEMM_UNROLL * _GEMM_UNROLL
+    return k
+
+
+@njit(cache=True, nogil=True)
+def _project(X, ids, Pk, y0, y1):
+    """y = P^k x_i for the view's points, as numpy's X[ids] @ P^k.T computes
+    it through BLAS: a chain of fused multiply-adds over the 3 coordinates."""
+    for t in range(ids.shape[0]):
+        i = ids[t]
+        y0[t] = _fma(X[i, 2], Pk[0, 2], _fma(X[i, 1], Pk[0, 1], X[i, 0] * Pk[0, 0]))
+        y1[t] = _fma(X[i, 2], Pk[1, 2], _fma(X[i, 1], Pk[1, 1], X[i, 0] * Pk[1, 0]))
+
+
+@njit(cache=True, nogil=True)
+def _pull_back(X, ids, Pk, gy0, gy1, gX, gPk, want_P):
+    """gX[ids] += G P^k and gPk = G^T X[ids], G = [gy0 gy1], in numpy's (BLAS's) order."""
+    for t in range(ids.shape[0]):
+        i = ids[t]
+        for c in range(3):
+            gX[i, c] += _fma(gy1[t], Pk[1, c], gy0[t] * Pk[0, c])
+    if not want_P:
+        return
+    gPk[:, :] = 0.0
+    start = 0
+    while start < ids.shape[0]:
+        stop = start + _gemm_block(ids.shape[0] - start)
+        for c in range(3):
+            a0 = 0.0
+            a1 = 0.0
+            for t in range(start, stop):
+                x = X[ids[t], c]
+                a0 = _fma(gy0[t], x, a0)
+                a1 = _fma(gy1[t], x, a1)
+            gPk[0, c] += a0
+            gPk[1, c] += a1
+        start = stop
+
+
+@njit(cache=True, nogil=True)
+def l2_views(X, P, D, D_start, ids, ids_start, keep, keep_start, compact, alpha, alpha_start,
+             want_grad, want_P, gX, gP):
+    """Eq. 1 (loss l2, every pair) summed over all dense views in one call,
+    with dS/dX added into ``gX`` and dS/dP^k written into ``gP`` (``want_P``).
+
+    The same arithmetic, term for term, as :meth:`Stress.value_and_grad`'s
+    loop over views (image points by BLAS, :func:`view_stress`, the pull-back
+    by BLAS), without its Python around each view, which was most of the time
+    on many small views (250 photos' tracks). View k holds the points
+    ``ids[ids_start[k]:ids_start[k + 1]]``, of which the rows ``keep[...]``
+    when ``compact[k]``, their distances flattened from ``D_start[k]`` and
+    their weights ``alpha[alpha_start[k]:...]`` (empty: all 1)."""
+    total = 0.0
+    no_mask = np.zeros((0, 0), dtype=np.bool_)
+    for k in range(P.shape[0]):
+        view = ids[ids_start[k]:ids_start[k + 1]]
+        n = view.shape[0]
+        y0, y1 = np.empty(n), np.empty(n)
+        _project(X, view, P[k], y0, y1)
+        rows = keep[keep_start[k]:keep_start[k + 1]]
+        if compact[k]:  # loops, not fancy indexing: a third of the compile time
+            u0, u1 = np.empty(rows.shape[0]), np.empty(rows.shape[0])
+            for t in range(rows.shape[0]):
+                u0[t], u1[t] = y0[rows[t]], y1[rows[t]]
+            y0, y1 = u0, u1
+        m = y0.shape[0]
+        g0 = np.zeros(m if want_grad else 0)
+        g1 = np.zeros(m if want_grad else 0)
+        total += _dense_l2(D[D_start[k]:D_start[k] + m * m].reshape(m, m), y0, y1, no_mask,
+                           alpha[alpha_start[k]:alpha_start[k + 1]], 1.0, g0, g1)
+        if not want_grad:
+            continue
+        g0 *= 2.0  # as view_stress: exact
+        g1 *= 2.0
+        if compact[k]:
+            gy0, gy1 = np.zeros(n), np.zeros(n)
+            for t in range(rows.shape[0]):
+                gy0[rows[t]], gy1[rows[t]] = g0[t], g1[t]
+            g0, g1 = gy0, gy1
+        _pull_back(X, view, P[k], g0, g1, gX, gP[k], want_P)
+    return total
+
+
 # Eigenvalues below this share of the largest are dropped, as numpy's pinv's rcond.
 _RCOND = 1e-15
 
@@ -920,6 +1027,10 @@ def warm(loss: str = "l2") -> None:
     view_stress(None, np.ones((3, 3)), Y, None, None, L2, 1.0, True)
     view_stress((np.array([0, 1]), np.array([1, 2]), np.ones(2)), None, Y, None, None, L2, 1.0, True)
     guttman_pass(np.ones((3, 3)), np.eye(3), np.empty((3, 3)))
+    ints = functools.partial(np.array, dtype=np.int64)
+    l2_views(np.eye(3), np.eye(3)[None, :2], np.ones(9), ints([0, 9]), ints([0, 1, 2]), ints([0, 3]),
+             ints([]), ints([0, 0]), np.zeros(1, dtype=np.bool_), np.empty(0), ints([0, 0]), True, True,
+             np.zeros((3, 3)), np.zeros((1, 2, 3)))
     P, d = np.zeros((3, 2, 3)), np.ones(3)
     P[:, 0, 0] = P[:, 1, 1] = 1.0
     place_point(np.zeros(3), P, Y, d, np.array([0, 1, 3]), 1.0, 5.0, 64, 1, 1)  # refine's weak points

@@ -34,6 +34,10 @@ _BLOCK_ENTRIES = 1 << 22
 DENSE_LIMIT = 4096
 NEIGHBOURS = 8  # nearest neighbours per point in the view (local rigidity)
 RANDOM_PAIRS = 8  # random partners per point (global rigidity)
+# All views' distances are copied into one array for :func:`kernels.l2_views`
+# up to this many entries in all (128 MB); beyond, each view is one kernel call,
+# whose Python around it is then a negligible share of the view's pairs.
+PACK_LIMIT = 1 << 24
 
 
 def sparse_pairs(Y: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
@@ -127,6 +131,7 @@ class Stress:
                            for i, p in zip(self.ids, self.pairs))
         self.alpha = [None] * len(self.ids)  # per view: a weight per visible point, or None
         self._kept = [None] * len(self.ids)  # per view: its points of weight > 0 (weighted)
+        self._packed = self._one_call()  # the views as kernels.l2_views reads them
 
     def weighted(self, alpha: list) -> "Stress":
         """The same stress with each observation (view k, point i) weighted:
@@ -136,7 +141,41 @@ class Stress:
         out = copy.copy(self)
         out.alpha = [None if a is None else np.ascontiguousarray(a, dtype=np.float64) for a in alpha]
         out._kept = [out._compact(k) for k in range(len(out.ids))]
+        out._packed = out._one_call()
         return out
+
+    def _sizes(self) -> list[int]:
+        return [len(ids) if kept is None else len(kept[0]) for ids, kept in zip(self.ids, self._kept)]
+
+    def _one_call(self):
+        """None when :func:`kernels.l2_views` applies (made on first use), False
+        when it does not: a robust loss, a sparse view, the numpy kernel, more
+        than PACK_LIMIT distances in all."""
+        fits = sum(n * n for n in self._sizes()) <= PACK_LIMIT
+        return None if self.kernel == "compiled" and self.loss == "l2" and not self.sparse and fits \
+            else False
+
+    def _pack(self):
+        """The views as one set of flat arrays for :func:`kernels.l2_views`, or False."""
+        if self._packed is None:
+            self._packed = self._flatten(self._sizes())
+        return self._packed
+
+    def _flatten(self, sizes):
+        views = range(len(self.ids))
+        kept = [self._kept[k] or (None, self.D[k], self.alpha[k]) for k in views]
+        keep = [np.zeros(0, dtype=np.int64) if self._kept[k] is None else self._kept[k][0] for k in views]
+        alpha = [np.zeros(0) if a is None else a for _, _, a in kept]
+
+        def starts(parts):
+            return np.concatenate([[0], np.cumsum([len(x) for x in parts])]).astype(np.int64)
+
+        return (np.concatenate([D.ravel() for _, D, _ in kept]),
+                np.concatenate([[0], np.cumsum([n * n for n in sizes])]).astype(np.int64),
+                np.concatenate(self.ids).astype(np.int64), starts(self.ids),
+                np.concatenate(keep).astype(np.int64), starts(keep),
+                np.array([k is not None for k in self._kept]),
+                np.concatenate(alpha).astype(np.float64), starts(alpha))
 
     def _compact(self, k: int):
         """View k without its points of weight 0, when it drops at least a tenth
@@ -246,6 +285,11 @@ class Stress:
 
     def value(self, X: np.ndarray, P: np.ndarray, masks=None) -> float:
         """S(X, P), Eq. 1 (each pair i > j once)."""
+        packed = self._pack() if masks is None else False
+        if packed:
+            return kernels.l2_views(np.ascontiguousarray(X, dtype=np.float64),
+                                    np.ascontiguousarray(P, dtype=np.float64), *packed,
+                                    False, False, np.zeros((0, 3)), np.zeros((0, 2, 3)))
         return sum(self._view(k, X[ids] @ P[k].T, None if masks is None else masks[k], False)[0]
                    for k, ids in enumerate(self.ids))
 
@@ -260,6 +304,13 @@ class Stress:
 
     def value_and_grad(self, X: np.ndarray, P: np.ndarray, masks=None, want_P: bool = False):
         """(S, dS/dX, dS/dP or None) at (X, P), optionally on a minibatch ``masks``."""
+        packed = self._pack() if masks is None else False
+        if packed:  # the loop below in one compiled call, the same bits
+            gX, gP = np.zeros((len(X), 3)), np.zeros((len(P), 2, 3))
+            total = kernels.l2_views(np.ascontiguousarray(X, dtype=np.float64),
+                                     np.ascontiguousarray(P, dtype=np.float64), *packed,
+                                     True, want_P, gX, gP)
+            return total, gX, gP if want_P else None
         total = 0.0
         gX = np.zeros_like(X)
         gP = np.zeros_like(P) if want_P else None

@@ -1,8 +1,10 @@
 import os
+from fractions import Fraction
 
 import numpy as np
 import pytest
 
+from mpe3d.solvers import stress as stress_module
 from mpe3d.solvers.stress import Stress, project_rows
 from tests.helpers import scene_and_observations
 
@@ -152,3 +154,52 @@ print("ok")
     done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
                           timeout=600)
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]
+
+
+def _blas_chains_fused_multiply_adds() -> bool:
+    """Whether numpy's BLAS sums a product as OpenBLAS's x86 AVX2 kernels do
+    (one rounding per multiply-add, long sums in blocks of 256): then the
+    one-call kernel must give numpy's bits, not just its values."""
+    def fma_chain(a, b):
+        total = 0.0
+        for x, y in zip(a, b):
+            total = float(Fraction(x) * Fraction(y) + Fraction(total))
+        return total
+
+    rng = np.random.default_rng(0)
+    G, X = rng.normal(size=(2, 300)), rng.normal(size=(300, 3))
+    blocked = [fma_chain(G[0, :152], X[:152, c]) + fma_chain(G[0, 152:], X[152:, c]) for c in range(3)]
+    return np.array_equal((G @ X)[0], blocked)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_all_views_in_one_call_are_the_per_view_loop(rng, monkeypatch, weighted):
+    # views of ~500 points: the pull-back's long sums run past one block of 256
+    _, scene, obs = scene_and_observations(points=900, views=5, **{"visibility.mode": "exact",
+                                                                   "visibility.k": 3})
+    X = scene.points + 0.05 * rng.normal(size=scene.points.shape)
+    P = project_rows(scene.projections + 0.05 * rng.normal(size=scene.projections.shape))
+
+    def make():
+        S = Stress(obs)
+        if not weighted:
+            return S
+        # views 0-1 lose a fifth of their points (compacted), 2 almost none, 3 weighs some by 0.4
+        alpha = [np.where(rng.random(len(ids)) < share, 0.0, 1.0)
+                 for ids, share in zip(S.ids, (0.2, 0.2, 0.01, 0.0, 0.3))]
+        alpha[3][::3] = 0.4
+        return S.weighted(alpha)
+
+    state = rng.bit_generator.state
+    one_call = make()
+    monkeypatch.setattr(stress_module, "PACK_LIMIT", -1)  # every view on its own
+    rng.bit_generator.state = state
+    per_view = make()
+    same = np.array_equal if _blas_chains_fused_multiply_adds() else \
+        (lambda a, b: np.allclose(a, b, rtol=1e-12, atol=1e-14 * np.abs(b).max()))
+    for want_P in (True, False):
+        v1, gX1, gP1 = one_call.value_and_grad(X, P, want_P=want_P)
+        v2, gX2, gP2 = per_view.value_and_grad(X, P, want_P=want_P)
+        assert same(v1, v2) and same(gX1, gX2)
+        assert same(gP1, gP2) if want_P else gP1 is None and gP2 is None
+    assert same(one_call.value(X, P), per_view.value(X, P))
