@@ -1,4 +1,5 @@
-"""Compiled passes: the 3DMPE stress (paper Eq. 1) one view at a time, SMACOF's
+"""Compiled passes: the 3DMPE stress (paper Eq. 1) one view at a time or all
+dense views in one call (:func:`l2_views`), SMACOF's
 Guttman transform, placing one point against anchors, the Schur term of
 bundle adjustment's reduced camera system, and the RANSAC scores of the
 two-view tests of wrong matches.

@@ -13,7 +13,10 @@ fused pass over its pairs i < j (:mod:`.kernels`), reading each input distance
 once and making no n x n temporary. ``kernel="numpy"`` is the earlier
 formulation, dense array work over row blocks of the view's distance matrix
 (e from scipy's cdist), kept as the reference the compiled kernel is checked
-and benchmarked against.
+and benchmarked against. With the paper's l2 loss, full batches and dense
+views, the loop over views runs inside one compiled call too
+(:func:`kernels.l2_views`, the same bits): on hundreds of small views the
+Python around each view's call had cost twice the kernel.
 """
 
 from __future__ import annotations
