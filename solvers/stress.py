@@ -165,20 +165,28 @@ class Stress:
         return self._packed
 
     def _flatten(self, sizes):
-        views = range(len(self.ids))
-        kept = [self._kept[k] or (None, self.D[k], self.alpha[k]) for k in views]
-        keep = [np.zeros(0, dtype=np.int64) if self._kept[k] is None else self._kept[k][0] for k in views]
-        alpha = [np.zeros(0) if a is None else a for _, _, a in kept]
+        views = [kept or (np.zeros(0, dtype=np.int64), D, alpha)
+                 for kept, D, alpha in zip(self._kept, self.D, self.alpha)]
+        alpha = [np.zeros(0) if a is None else a for _, _, a in views]
 
-        def starts(parts):
-            return np.concatenate([[0], np.cumsum([len(x) for x in parts])]).astype(np.int64)
+        def starts(lengths):
+            return np.concatenate([[0], np.cumsum(lengths)]).astype(np.int64)
 
-        return (np.concatenate([D.ravel() for _, D, _ in kept]),
-                np.concatenate([[0], np.cumsum([n * n for n in sizes])]).astype(np.int64),
-                np.concatenate(self.ids).astype(np.int64), starts(self.ids),
-                np.concatenate(keep).astype(np.int64), starts(keep),
-                np.array([k is not None for k in self._kept]),
-                np.concatenate(alpha).astype(np.float64), starts(alpha))
+        return (np.concatenate([D.ravel() for _, D, _ in views]), starts([n * n for n in sizes]),
+                np.concatenate(self.ids).astype(np.int64), starts(list(map(len, self.ids))),
+                np.concatenate([keep for keep, _, _ in views]).astype(np.int64),
+                starts([len(keep) for keep, _, _ in views]),
+                np.array([kept is not None for kept in self._kept]),
+                np.concatenate(alpha).astype(np.float64), starts(list(map(len, alpha))))
+
+    def _all_views(self, X, P, want_grad: bool, want_P: bool):
+        """(S, dS/dX or None, dS/dP or None) by :func:`kernels.l2_views`."""
+        gX = np.zeros((len(X) if want_grad else 0, 3))
+        gP = np.zeros((len(P) if want_grad else 0, 2, 3))  # l2_views indexes it per view
+        total = kernels.l2_views(np.ascontiguousarray(X, dtype=np.float64),
+                                 np.ascontiguousarray(P, dtype=np.float64), *self._packed,
+                                 want_grad, want_P, gX, gP)
+        return total, gX if want_grad else None, gP if want_P else None
 
     def _compact(self, k: int):
         """View k without its points of weight 0, when it drops at least a tenth
@@ -288,11 +296,8 @@ class Stress:
 
     def value(self, X: np.ndarray, P: np.ndarray, masks=None) -> float:
         """S(X, P), Eq. 1 (each pair i > j once)."""
-        packed = self._pack() if masks is None else False
-        if packed:
-            return kernels.l2_views(np.ascontiguousarray(X, dtype=np.float64),
-                                    np.ascontiguousarray(P, dtype=np.float64), *packed,
-                                    False, False, np.zeros((0, 3)), np.zeros((0, 2, 3)))
+        if masks is None and self._pack():
+            return self._all_views(X, P, False, False)[0]
         return sum(self._view(k, X[ids] @ P[k].T, None if masks is None else masks[k], False)[0]
                    for k, ids in enumerate(self.ids))
 
@@ -307,13 +312,8 @@ class Stress:
 
     def value_and_grad(self, X: np.ndarray, P: np.ndarray, masks=None, want_P: bool = False):
         """(S, dS/dX, dS/dP or None) at (X, P), optionally on a minibatch ``masks``."""
-        packed = self._pack() if masks is None else False
-        if packed:  # the loop below in one compiled call, the same bits
-            gX, gP = np.zeros((len(X), 3)), np.zeros((len(P), 2, 3))
-            total = kernels.l2_views(np.ascontiguousarray(X, dtype=np.float64),
-                                     np.ascontiguousarray(P, dtype=np.float64), *packed,
-                                     True, want_P, gX, gP)
-            return total, gX, gP if want_P else None
+        if masks is None and self._pack():  # the loop below in one compiled call, the same bits
+            return self._all_views(X, P, True, want_P)
         total = 0.0
         gX = np.zeros_like(X)
         gP = np.zeros_like(P) if want_P else None
