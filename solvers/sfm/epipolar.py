@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import csr_matrix
 
-from mpe3d.solvers.kernels import sampson_costs, subspace_costs
+from mpe3d.solvers.kernels import eight_point_samples, sampson_costs, subspace_costs
 from mpe3d.solvers.threads import map_drawn
 
 SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged
@@ -114,10 +114,12 @@ def _normalising(points: np.ndarray) -> np.ndarray:
     return np.array([[scale, 0, -scale * centre[0]], [0, scale, -scale * centre[1]], [0, 0, 1]])
 
 
-def _fundamentals(a: np.ndarray, b: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) rank-2 fundamental matrices b^T F a = 0 by the weighted
-    eight-point method, from homogeneous (..., n, 3) rows."""
-    A = (b[..., :, :, None] * a[..., :, None, :]).reshape(*a.shape[:-1], 9) * weights[..., None]
+def _fundamentals(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(..., 3, 3) rank-2 fundamental matrices b^T F a = 0 by the eight-point
+    method, from homogeneous (..., n, 3) rows: the fit to the matches near
+    RANSAC's best, and its rank-deficient samples
+    (:func:`~mpe3d.solvers.kernels.eight_point_samples` does the others)."""
+    A = (b[..., :, :, None] * a[..., :, None, :]).reshape(*a.shape[:-1], 9)
     # the null vector is the last row of V^T: a sample of 8 needs the full 9 x 9,
     # a fit to all n >= 9 matches not the n x n U a full SVD also builds (3 s at
     # 10,000 matches, 2 ms without; V^T is the same bits)
@@ -180,31 +182,23 @@ def _off_epipolar_lines(q, draws, sigmas, floor) -> np.ndarray:
     # does: a pair of a million-point scene shares 375,000 (a trials x n array
     # each is 600 MB); the fits to the matches near the best use them all
     scored, keys = draws
-    trials = len(keys)
-    picks = scored[_smallest(keys, 8)]
-    F = _fundamentals(a[picks], b[picks], np.ones((trials, 8)))
-    capped, sigma = sampson_costs(F, a[scored], b[scored], _MAD, float(sigmas))
+    a_scored, b_scored = a[scored], b[scored]
+    F, degenerate = eight_point_samples(a_scored, b_scored, keys)
+    if degenerate.any():  # a null plane: SVD's vector in it, as before the kernel
+        picks = np.argsort(keys[degenerate], axis=1)[:, :8]
+        F[degenerate] = _fundamentals(a_scored[picks], b_scored[picks])
+    capped, sigma = sampson_costs(F, a_scored, b_scored, _MAD, float(sigmas))
     best = F[np.argmin(capped + len(scored) * np.log(sigma))]
     for _ in range(2):
         distance = _sampson(best, a, b)
         near = distance <= sigmas * max(np.median(distance) / _MAD, 1e-12)
         if near.sum() < 8:
             break
-        best = _fundamentals(a[near], b[near], np.ones(int(near.sum())))
+        best = _fundamentals(a[near], b[near])
     distance = _sampson(best, a, b)
     sigma = np.median(distance) / _MAD
     pixels = distance / (0.5 * (Ta[0, 0] + Tb[0, 0]))  # the conditioning's scale undone
     return (distance > sigmas * sigma) & (pixels > floor)
-
-
-def _smallest(keys: np.ndarray, m: int) -> np.ndarray:
-    """(S, m): the columns of each row's m smallest keys, smallest first (the
-    first m of its argsort, for distinct keys), by a partition and a sort of
-    m: a full argsort of 200 x 2,000 keys cost 1 s of 250 views' test."""
-    if keys.shape[1] <= m:
-        return np.argsort(keys, axis=1)
-    first = np.argpartition(keys, m - 1, axis=1)[:, :m]
-    return np.take_along_axis(first, np.argsort(np.take_along_axis(keys, first, axis=1), axis=1), axis=1)
 
 
 def _pairs(view, point, n_views, n_points):

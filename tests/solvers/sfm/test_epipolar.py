@@ -3,7 +3,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mpe3d.solvers.kernels import sampson_costs, subspace_costs
+from mpe3d.solvers.kernels import eight_point_samples, sampson_costs, subspace_costs
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.epipolar import epipolar_outliers
 from tests.helpers import SHARED, random_views
@@ -142,6 +142,40 @@ def test_the_compiled_msac_scores_are_the_numpy_formulas_to_rounding(rng):
     cost = capped + len(q) * np.log(sigma)
     assert np.argmin(got_capped + len(q) * np.log(got_sigma)) == np.argmin(cost)
     assert len(np.unique(np.round(cost, 6))) > 100  # samples that score differently: a real test
+
+
+def test_the_compiled_eight_point_samples_are_the_svd_formulation_to_rounding(rng):
+    """eight_point_samples against the numpy formulation it replaced: each
+    row's 8 smallest keys (argsort), the null vector of their 8 x 9 system
+    by a full SVD, the nearest rank-2 matrix; the same matrices up to sign
+    and rounding, rank 2, and the same winner of the MSAC scores. A sample
+    with a repeated keypoint (a null plane) is reported, and only it; pairs
+    of fewer than 8 matches are no error."""
+    view, _, z = _scene(rng, "perspective", noise=1.0)
+    corrupted, _ = _swap(view, z, 0.1, rng)
+    q = np.hstack([corrupted[view == 0][:80], corrupted[view == 1][:80]])
+    q[1] = q[0]  # one keypoint matched twice
+    a, b = (np.c_[q[:, cols], np.ones(len(q))] / 500 for cols in (slice(0, 2), slice(2, 4)))
+    keys = rng.random((200, len(q)))
+    keys[:20, :2] = -1.0 - rng.random((20, 2))  # the first 20 samples hold both copies
+    picks = np.argsort(keys, axis=1)[:, :8]
+    rows = (b[picks][..., :, None] * a[picks][..., None, :]).reshape(200, 8, 9)
+    U, S, Vt = np.linalg.svd(np.linalg.svd(rows)[2][:, -1].reshape(200, 3, 3))
+    S[:, 2] = 0.0
+    expected = U @ (S[..., None] * Vt)
+    got, degenerate = eight_point_samples(a, b, keys)
+    singular = np.linalg.svd(rows, compute_uv=False)
+    assert degenerate[:20].all()  # (a later sample may draw both copies too)
+    assert np.array_equal(degenerate, singular[:, 7] < 1e-12 * singular[:, 0])
+    sign = np.sign(np.einsum("sij,sij->s", got, expected))[:, None, None]
+    np.testing.assert_allclose((sign * got)[~degenerate], expected[~degenerate], atol=1e-12)
+    assert np.all(np.abs(np.linalg.det(got)) < 1e-15)  # rank 2
+    got[degenerate] = expected[degenerate]  # as the caller recomputes them
+    scores = [capped + len(q) * np.log(sigma) for capped, sigma in
+              (sampson_costs(F, a, b, 0.6745, 10.0) for F in (got, expected))]
+    assert np.argmin(scores[0]) == np.argmin(scores[1])
+    short, _ = eight_point_samples(a[:5], b[:5], rng.random((3, 5)))
+    assert np.all(np.isfinite(short))
 
 
 def test_the_compiled_subspace_scores_are_the_numpy_formulas_to_rounding(rng):
