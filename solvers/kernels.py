@@ -706,6 +706,76 @@ def _fma(typingctx, a, b, c):
     return types.float64(types.float64, types.float64, types.float64), codegen
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _small_matmul(A, B, C):
+    """C = A @ B as numpy's BLAS computes a small product: each entry one
+    chain of fused multiply-adds along the inner index, from its first
+    product."""
+    for i in range(A.shape[0]):
+        for j in range(B.shape[1]):
+            c = A[i, 0] * B[0, j]
+            for k in range(1, A.shape[1]):
+                c = _fma(A[i, k], B[k, j], c)
+            C[i, j] = c
+
+
+@njit(cache=True, nogil=True)
+def pose_jacobians(X, view, point, R, Jr, shift, factor, pinhole, d_x, d_view, d_focal):
+    """The Jacobian blocks of the observations (view[t], point[t]) for the
+    orthographic, scaled and perspective cameras (:mod:`mpe3d.solvers.sfm.cameras`),
+    in one pass and no (T, 3, 3) temporaries: fills du/dx (T, 2, 3), the
+    view's rotation and translation columns of d_view (T, 2, per_view; for
+    scaled also d/d(log s)), and for the pinhole d_focal (T, 2) = du/d(log f).
+
+    R (K, 3, 3) are the current rotations, Jr (K, 3, 3) SO(3)'s right
+    Jacobians at the parameters w, so du/dw = du/dq (-R [x]x J_r); ``shift``
+    (K, 3) the pinhole's translations, ``factor`` (K,) its focal lengths or
+    the affine cameras' scales. Each product is formed as numpy formed it
+    (einsum's order for R x, BLAS's fused chains for the 3 x 3 products), so
+    the blocks are numpy's to the bit where numpy's BLAS fuses (x86 OpenBLAS;
+    checked in tests/solvers/sfm/test_cameras.py)."""
+    H, M, negR, dq = np.zeros((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
+    dn, focal, du, product = np.zeros((2, 3)), np.empty((2, 2)), np.empty((2, 3)), np.empty((2, 3))
+    scaled = not pinhole and d_view.shape[2] > 5
+    for t in range(view.shape[0]):
+        v, i = view[t], point[t]
+        x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+        Rv = R[v]
+        q0 = (Rv[0, 0] * x0 + Rv[0, 2] * x2) + Rv[0, 1] * x1  # einsum's order
+        q1 = (Rv[1, 0] * x0 + Rv[1, 2] * x2) + Rv[1, 1] * x1
+        q2 = (Rv[2, 0] * x0 + Rv[2, 2] * x2) + Rv[2, 1] * x1
+        H[0, 1], H[0, 2], H[1, 0], H[1, 2], H[2, 0], H[2, 1] = -x2, x1, x2, -x0, -x1, x0
+        for a in range(3):
+            for b in range(3):
+                negR[a, b] = -Rv[a, b]
+        _small_matmul(negR, H, M)
+        _small_matmul(M, Jr[v], dq)  # dq/dw
+        s = factor[v]
+        if not pinhole:
+            for a in range(2):
+                for b in range(3):
+                    d_x[t, a, b] = s * Rv[a, b]
+                    d_view[t, a, b] = s * dq[a, b]
+            d_view[t, 0, 3] = d_view[t, 1, 4] = 1.0
+            if scaled:
+                d_view[t, 0, 5], d_view[t, 1, 5] = s * q0, s * q1
+            continue
+        p0, p1, p2 = q0 + shift[v, 0], q1 + shift[v, 1], q2 + shift[v, 2]
+        n0, n1 = p0 / p2, p1 / p2
+        dn[0, 0] = dn[1, 1] = 1 / p2
+        dn[0, 2], dn[1, 2] = -n0 / p2, -n1 / p2
+        focal[0, 0], focal[0, 1], focal[1, 0], focal[1, 1] = s * 1.0, s * 0.0, s * 0.0, s * 1.0
+        _small_matmul(focal, dn, du)  # du/dp
+        _small_matmul(du, Rv, product)
+        d_x[t] = product
+        _small_matmul(du, dq, product)
+        for a in range(2):
+            for b in range(3):
+                d_view[t, a, b] = product[a, b]
+                d_view[t, a, 3 + b] = du[a, b]
+        d_focal[t, 0], d_focal[t, 1] = s * n0, s * n1
+
+
 # OpenBLAS's double GEMM splits a long inner dimension into blocks of at most this
 # many terms (GEMM_Q), a split rounded to its unroll of 4, and adds each block's
 # sum into the result: :func:`l2_views` sums G^T X the same way.
@@ -1138,6 +1208,9 @@ def warm(loss: str = "l2") -> None:
                np.ones(2, dtype=np.bool_), 2, 1, 0.0, 0.0)
     sampson_costs(np.ones((1, 3, 3)), np.ones((2, 3)), np.ones((2, 3)), 1.0, 1.0)
     eight_point_samples(np.ones((9, 3)), np.ones((9, 3)), np.ones((1, 9)))
+    pose_jacobians(np.ones((1, 3)), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
+                   np.ones((1, 3, 3)), np.ones((1, 3, 3)), np.ones((1, 3)), np.ones(1), True,
+                   np.empty((1, 2, 3)), np.zeros((1, 2, 6)), np.empty((1, 2)))
     subspace_costs(np.ones((1, 2, 4)), np.array([2]), np.ones((1, 1, 4)), np.ones((1, 1, 1, 4)), 1.0, 1.0)
     warmed = True
 

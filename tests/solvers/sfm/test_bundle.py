@@ -1,4 +1,6 @@
 """Bundle adjustment of keypoints: camera models, their Jacobians, the start and the solve."""
+from fractions import Fraction
+
 import numpy as np
 import pytest
 from scipy.optimize import least_squares
@@ -7,7 +9,16 @@ from scipy.sparse import csr_matrix
 from mpe3d.errors import MpeError
 from mpe3d.solvers.degenerate import DegenerateWarning
 from mpe3d.solvers.sfm import bundle
-from mpe3d.solvers.sfm.cameras import AFFINE, Cameras, affine_cameras, exp_so3, radial_cameras, with_distortion
+from mpe3d.solvers.sfm.cameras import (
+    AFFINE,
+    Cameras,
+    affine_cameras,
+    exp_so3,
+    hat,
+    radial_cameras,
+    right_jacobian,
+    with_distortion,
+)
 from tests.helpers import SHARED
 
 N, K = 60, 6
@@ -40,24 +51,29 @@ def _similarity_error(X, truth):
     return np.sqrt(np.mean(np.sum((fitted - b) ** 2, 1))) / np.sqrt(np.mean(np.sum(b ** 2, 1)))
 
 
+def _random_cameras(model, rng):
+    """K cameras of ``model`` (``-per-view``: focal lengths per view) in general position."""
+    if model == "affine":
+        return Cameras(AFFINE, np.broadcast_to(np.eye(3), (K, 3, 3)),
+                       rng.standard_normal((K, 8)), np.zeros(0), np.zeros(2))
+    R = exp_so3(rng.standard_normal((K, 3)))
+    pinhole = model.startswith(("perspective", "radial"))
+    cameras = affine_cameras("perspective" if pinhole else model, R[:, :2],
+                             np.exp(rng.standard_normal(K) / 5), rng.standard_normal((K, 2)),
+                             focal=5.0, principal_point=[0.1, 0.2],
+                             shared_focal=model in ("perspective", "radial"))
+    if model.startswith("radial"):
+        cameras = with_distortion(cameras)
+        k = cameras.shared[1:] if cameras.shared.size else cameras.params[:, 7:]
+        k[...] = 0.1 * rng.standard_normal(k.shape)
+    cameras.params[:, :3] = 0.3 * rng.standard_normal((K, 3))  # away from the anchor
+    return cameras
+
+
 @pytest.mark.parametrize("model", ["affine", "orthographic", "scaled", "perspective",
                                    "perspective-per-view", "radial", "radial-per-view"])
 def test_analytic_jacobians_match_finite_differences(model, rng):
-    if model == "affine":
-        cameras = Cameras(AFFINE, np.broadcast_to(np.eye(3), (K, 3, 3)),
-                          rng.standard_normal((K, 8)), np.zeros(0), np.zeros(2))
-    else:
-        R = exp_so3(rng.standard_normal((K, 3)))
-        pinhole = model.startswith(("perspective", "radial"))
-        cameras = affine_cameras("perspective" if pinhole else model, R[:, :2],
-                                 np.exp(rng.standard_normal(K) / 5), rng.standard_normal((K, 2)),
-                                 focal=5.0, principal_point=[0.1, 0.2],
-                                 shared_focal=model in ("perspective", "radial"))
-        if model.startswith("radial"):
-            cameras = with_distortion(cameras)
-            k = cameras.shared[1:] if cameras.shared.size else cameras.params[:, 7:]
-            k[...] = 0.1 * rng.standard_normal(k.shape)
-        cameras.params[:, :3] = 0.3 * rng.standard_normal((K, 3))  # away from the anchor
+    cameras = _random_cameras(model, rng)
     X = rng.standard_normal((N, 3))
     view, point = np.repeat(np.arange(K), N), np.tile(np.arange(N), K)
     d_x, d_view, d_shared = cameras.jacobian_blocks(X, view, point)
@@ -81,6 +97,68 @@ def test_analytic_jacobians_match_finite_differences(model, rng):
         down[:, c] -= h
         numeric = (cameras.project(up, view, point) - cameras.project(down, view, point)) / (2 * h)
         assert np.abs(numeric - d_x[:, :, c]).max() < 1e-7
+
+
+def _numpy_pose_blocks(cameras, X, view, point):
+    """The numpy formulation that kernels.pose_jacobians replaced."""
+    T, x = len(view), X[point]
+    R = cameras.current_rotations()[view]
+    q = np.einsum("tij,tj->ti", R, x)
+    dq_dw = -R @ hat(x) @ right_jacobian(cameras.params[:, :3])[view]
+    d_view, d_shared = np.zeros((T, 2, cameras.per_view)), np.zeros((T, 2, cameras.shared.size))
+    if cameras.model != "perspective":
+        s = cameras.scale()[view, None, None]
+        d_view[:, :, :3] = s * dq_dw[:, :2]
+        d_view[:, 0, 3] = d_view[:, 1, 4] = 1.0
+        if cameras.model == "scaled":
+            d_view[:, :, 5] = s[:, :, 0] * q[:, :2]
+        return s * R[:, :2], d_view, d_shared
+    p = q + cameras.params[view, 3:6]
+    f, n = cameras.focal()[view], p[:, :2] / p[:, 2:3]
+    dn_dp = np.zeros((T, 2, 3))
+    dn_dp[:, 0, 0] = dn_dp[:, 1, 1] = 1 / p[:, 2]
+    dn_dp[:, :, 2] = -n / p[:, 2:3]
+    du_dp = (f[:, None, None] * np.eye(2)) @ dn_dp
+    d_view[:, :, :3], d_view[:, :, 3:6] = du_dp @ dq_dw, du_dp
+    (d_shared if cameras.shared.size else d_view[:, :, 6:])[...] = (f[:, None] * n)[:, :, None]
+    return du_dp @ R, d_view, d_shared
+
+
+def _numpy_sums_as_the_kernel_does(rng) -> bool:
+    """Whether numpy's BLAS forms a 3 x 3 product as one chain of fused
+    multiply-adds and einsum sums R x as (r0 x0 + r2 x2) + r1 x1 (x86
+    OpenBLAS and numpy 2's einsum): then the kernel must give numpy's bits."""
+    def fma(a, b, c):
+        return float(Fraction(a) * Fraction(b) + Fraction(c))
+
+    A, B = rng.standard_normal((2, 40, 3, 3))
+    chained = np.array([[[fma(A[t, i, 2], B[t, 2, j], fma(A[t, i, 1], B[t, 1, j], A[t, i, 0] * B[t, 0, j]))
+                          for j in range(3)] for i in range(3)] for t in range(40)])
+    x = B[:, 0]
+    paired = (A[:, :, 0] * x[:, None, 0] + A[:, :, 2] * x[:, None, 2]) + A[:, :, 1] * x[:, None, 1]
+    return np.array_equal(A @ B, chained) and np.array_equal(np.einsum("tij,tj->ti", A, x), paired)
+
+
+@pytest.mark.parametrize("model", ["orthographic", "scaled", "perspective", "perspective-per-view"])
+def test_compiled_pose_jacobians_are_the_numpy_formulation(model, rng):
+    """jacobian_blocks of the compiled models against the numpy formulation:
+    the same bits where numpy sums as the kernel does, else to rounding."""
+    cameras = _random_cameras(model, rng)
+    X = 100 * rng.standard_normal((N, 3))
+    if cameras.model == "perspective":
+        cameras.params[:, 5] += 1000.0  # every point in front
+    view, point = np.repeat(np.arange(K), N), np.tile(np.arange(N), K)
+    order = rng.permutation(len(view))  # observations in no particular order
+    view, point = view[order], point[order]
+    got = cameras.jacobian_blocks(X, view, point)
+    expected = _numpy_pose_blocks(cameras, X, view, point)
+    exact = _numpy_sums_as_the_kernel_does(rng)
+    for a, b in zip(got, expected):
+        assert a.shape == b.shape
+        if exact:
+            assert np.array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12 * np.abs(b).max())
 
 
 @pytest.mark.parametrize("model", ["orthographic", "scaled"])
