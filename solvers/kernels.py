@@ -1127,6 +1127,25 @@ def schur_rows(Y, Z, view, starts, point, totals, order, first, B, C, k0, k1):
                         block[p, q] += y0 * zb[0, q] + y1 * zb[1, q] + y2 * zb[2, q]
 
 
+@njit(cache=True, nogil=True)
+def whitened_blocks(root, W, point, rows):
+    """Y (T, 3, c) with Y[t] = root[point[t]] @ W[rows[t]]: each observation's
+    U_i^-1/2 W_t for :func:`reduced_system`, in the order ``rows`` (by point).
+    Each entry is one chain of fused multiply-adds over the 3 terms, as
+    numpy's BLAS forms the product, so Y is numpy's stacked matmul to the bit
+    where that BLAS fuses (x86 OpenBLAS), without its one BLAS call per
+    observation (250 views x 3,000 points: 48 -> 25 ms, the rest gathering W
+    by point)."""
+    c = W.shape[2]
+    Y = np.empty((len(rows), 3, c))
+    for t in range(len(rows)):
+        r, w = root[point[t]], W[rows[t]]
+        for i in range(3):
+            for j in range(c):
+                Y[t, i, j] = _fma(r[i, 2], w[2, j], _fma(r[i, 1], w[1, j], r[i, 0] * w[0, j]))
+    return Y
+
+
 _THREADED_PAIRS = 100_000  # about 5 ms of schur_rows: threads for more
 
 
@@ -1208,6 +1227,7 @@ def warm(loss: str = "l2") -> None:
                np.ones(2, dtype=np.bool_), 2, 1, 0.0, 0.0)
     sampson_costs(np.ones((1, 3, 3)), np.ones((2, 3)), np.ones((2, 3)), 1.0, 1.0)
     eight_point_samples(np.ones((9, 3)), np.ones((9, 3)), np.ones((1, 9)))
+    whitened_blocks(np.ones((1, 3, 3)), np.ones((1, 3, 6)), ints([0]), ints([0]))
     pose_jacobians(np.ones((1, 3)), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
                    np.ones((1, 3, 3)), np.ones((1, 3, 3)), np.ones((1, 3)), np.ones(1), True,
                    np.empty((1, 2, 3)), np.zeros((1, 2, 6)), np.empty((1, 2)))

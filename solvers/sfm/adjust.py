@@ -15,7 +15,7 @@ from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
 from mpe3d.solvers import threads
-from mpe3d.solvers.kernels import reduced_system
+from mpe3d.solvers.kernels import reduced_system, whitened_blocks
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
 from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, rms
@@ -134,8 +134,9 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
         return Fit(X, cameras, np.array(history), True)
     for _ in range(max_iter):
         d_x, d_view, d_shared = cameras.jacobian_blocks(X, view, point)
-        d_c = np.concatenate([d_view, d_shared], axis=2)  # (T, 2, c)
-        d_c = d_c * free[structure.cols][:, None, :]
+        d_c = np.concatenate([d_view, d_shared], axis=2) if d_shared.shape[2] else d_view  # (T, 2, c)
+        if frozen is not None:
+            d_c = d_c * free[structure.cols][:, None, :]
         wr = weight[:, None] * r
         wd_x = weight[:, None, None] * d_x  # batched matmuls: far faster than 3-operand einsum
         wd_xt = wd_x.transpose(0, 2, 1)
@@ -178,7 +179,7 @@ def _reduced_system(V, U_damped, W, structure):
     observations (:func:`mpe3d.solvers.kernels.reduced_system`)."""
     values, vectors = np.linalg.eigh(U_damped)
     root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
-    Y = np.matmul(root[structure.point_by_point], W[structure.by_point])  # (T, 3, c), by point
+    Y = whitened_blocks(root, W, structure.point_by_point, structure.by_point)  # (T, 3, c), by point
     return reduced_system(V, Y, structure.view_by_point, structure.point_starts, structure.blocks,
                           threads.count())
 

@@ -7,6 +7,7 @@ import pytest
 
 from mpe3d.solvers import kernels
 from mpe3d.solvers.linalg import gram_by_group, matvec_by_group, pinv_psd
+from tests.helpers import blas_fuses_small_products
 
 
 def test_smacof_takes_scikit_learns_steps(rng):
@@ -196,6 +197,20 @@ def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng, per_vi
     with pytest.raises(ValueError, match="do not fit"):
         kernels.reduced_system(np.eye(size - 1), Y, view, starts,
                                np.empty((n_views, n_views, per_view, per_view)))
+
+
+@pytest.mark.parametrize("c", [6, 7])
+def test_the_whitened_blocks_are_numpy_s_stacked_products(rng, c):
+    """Y[t] = root[point[t]] @ W[rows[t]], the same bits as numpy's stacked
+    matmul where its BLAS chains fused multiply-adds, else to rounding."""
+    root, W = rng.normal(size=(30, 3, 3)), rng.normal(size=(200, 3, c))
+    point, rows = rng.integers(0, 30, size=200), rng.permutation(200)
+    got = kernels.whitened_blocks(root, W, point, rows)
+    expected = np.matmul(root[point], W[rows])
+    if blas_fuses_small_products():
+        assert np.array_equal(got, expected)
+    else:
+        np.testing.assert_allclose(got, expected, rtol=1e-13, atol=1e-13)
 
 
 def test_a_robust_losss_kernel_is_warmed_only_for_a_solve_that_asks_for_it():
