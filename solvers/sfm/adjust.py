@@ -15,7 +15,7 @@ from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
 from mpe3d.solvers import threads
-from mpe3d.solvers.kernels import reduced_system, whitened_blocks
+from mpe3d.solvers.kernels import reduced_system, transposed_products, whitened_blocks
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
 from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, rms
@@ -138,11 +138,11 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
         if frozen is not None:
             d_c = d_c * free[structure.cols][:, None, :]
         wr = weight[:, None] * r
-        wd_x = weight[:, None, None] * d_x  # batched matmuls: far faster than 3-operand einsum
-        wd_xt = wd_x.transpose(0, 2, 1)
-        U = sum_by(point, wd_xt @ d_x, N)
+        wd_x = weight[:, None, None] * d_x
+        d_x, d_c = np.ascontiguousarray(d_x), np.ascontiguousarray(d_c)  # (the kernel's layout)
+        U = sum_by(point, transposed_products(wd_x, d_x), N)
         U[unseen] = np.eye(3)
-        W = wd_xt @ d_c  # (T, 3, c)
+        W = transposed_products(wd_x, d_c)  # (T, 3, c)
         g_x = sum_by(point, np.einsum("tai,ta->ti", d_x, wr), N)
         g_c = np.bincount(structure.cols.ravel(), minlength=structure.size,
                           weights=np.einsum("taj,ta->tj", d_c, wr).ravel())

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mpe3d.solvers import kernels
-from mpe3d.solvers.linalg import gram_by_group, matvec_by_group, pinv_psd
+from mpe3d.solvers.linalg import gram_by_group, matvec_by_group, pinv_psd, rows_by_group
 from tests.helpers import blas_fuses_small_products
 
 
@@ -162,6 +162,9 @@ def test_grouped_products_equal_the_per_row_ones(rng):
     np.add.at(want, group, np.einsum("tai,taj->tij", A, B))
     assert np.allclose(gram_by_group(A, group, 5, B), want)
     assert np.allclose(gram_by_group(Y, group, 5), [Y[group == g].T @ Y[group == g] for g in range(5)])
+    # rows in increasing order, as a scan finds them; rows of groups past n_groups in none
+    assert all(np.array_equal(rows, np.flatnonzero(group == g)) for g, rows in enumerate(rows_by_group(group, 4)))
+    assert len(rows_by_group(group, 4)) == 4 and rows_by_group(group, 0) == []
 
 
 @pytest.mark.parametrize("per_view", [4, 6])  # 6 has a loop of its own
@@ -197,6 +200,19 @@ def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng, per_vi
     with pytest.raises(ValueError, match="do not fit"):
         kernels.reduced_system(np.eye(size - 1), Y, view, starts,
                                np.empty((n_views, n_views, per_view, per_view)))
+
+
+def test_the_transposed_products_are_numpy_s_stacked_products(rng):
+    """A[t]^T B[t], the same bits as numpy's stacked matmul of the transposed
+    view where its BLAS chains fused multiply-adds, else to rounding."""
+    A, B = rng.normal(size=(200, 2, 3)), rng.normal(size=(200, 2, 7))
+    for right in (A, B):
+        got = kernels.transposed_products(A, right)
+        expected = A.transpose(0, 2, 1) @ right
+        if blas_fuses_small_products():
+            assert np.array_equal(got, expected)
+        else:
+            np.testing.assert_allclose(got, expected, rtol=1e-13, atol=1e-13)
 
 
 @pytest.mark.parametrize("c", [6, 7])
