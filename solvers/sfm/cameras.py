@@ -223,11 +223,9 @@ class Cameras:
         return d_x, d_view, d_shared
 
     def _intrinsic_blocks(self, n, f, view):
-        """du/dn (T, 2, 2) and du/d(log f[, k1, k2]) (T, 2, 1 or 3) at the
-        normalised image points n."""
+        """The radial camera's du/dn (T, 2, 2) and du/d(log f, k1, k2) (T, 2, 3)
+        at the normalised image points n."""
         T = len(n)
-        if self.model != "radial":
-            return f[:, None, None] * np.eye(2), (f[:, None] * n)[:, :, None]
         k = self.distortion()[view]
         r2 = np.sum(n ** 2, axis=1)
         d = 1 + k[:, 0] * r2 + k[:, 1] * r2 ** 2
