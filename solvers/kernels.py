@@ -733,7 +733,7 @@ def pose_jacobians(X, view, point, R, Jr, shift, factor, pinhole, d_x, d_view, d
     the affine cameras' scales. Each product is formed as numpy formed it
     (einsum's order for R x, BLAS's fused chains for the 3 x 3 products), so
     the blocks are numpy's to the bit where numpy's BLAS fuses (x86 OpenBLAS;
-    checked in tests/solvers/sfm/test_cameras.py)."""
+    checked in tests/solvers/sfm/test_bundle.py)."""
     H, M, negR, dq = np.zeros((3, 3)), np.empty((3, 3)), np.empty((3, 3)), np.empty((3, 3))
     dn, focal, du, product = np.zeros((2, 3)), np.empty((2, 2)), np.empty((2, 3)), np.empty((2, 3))
     scaled = not pinhole and d_view.shape[2] > 5
@@ -765,7 +765,7 @@ def pose_jacobians(X, view, point, R, Jr, shift, factor, pinhole, d_x, d_view, d
         dn[0, 0] = dn[1, 1] = 1 / p2
         dn[0, 2], dn[1, 2] = -n0 / p2, -n1 / p2
         focal[0, 0], focal[0, 1], focal[1, 0], focal[1, 1] = s * 1.0, s * 0.0, s * 0.0, s * 1.0
-        _small_matmul(focal, dn, du)  # du/dp
+        _small_matmul(focal, dn, du)  # du/dp; f I as a matrix, as numpy had it: its signed zeros
         _small_matmul(du, Rv, product)
         d_x[t] = product
         _small_matmul(du, dq, product)
@@ -1129,38 +1129,26 @@ def schur_rows(Y, Z, view, starts, point, totals, order, first, B, C, k0, k1):
 
 @njit(cache=True, nogil=True)
 def transposed_products(A, B):
-    """(T, a, b): A[t]^T @ B[t] for A (T, r, a) and B (T, r, b), each entry one
-    chain of fused multiply-adds over r as numpy's BLAS forms it (the same bits
-    where it fuses), without numpy's one BLAS call per t: the Gauss-Newton
-    blocks J_x^T w J_x and J_x^T w J_c of every observation."""
-    T, r = A.shape[0], A.shape[1]
-    out = np.empty((T, A.shape[2], B.shape[2]))
-    for t in range(T):
-        for i in range(A.shape[2]):
-            for j in range(B.shape[2]):
-                c = A[t, 0, i] * B[t, 0, j]
-                for k in range(1, r):
-                    c = _fma(A[t, k, i], B[t, k, j], c)
-                out[t, i, j] = c
+    """(T, a, b): A[t]^T @ B[t] for A (T, r, a) and B (T, r, b), each as numpy's
+    BLAS forms it (:func:`_small_matmul`: the same bits where it fuses),
+    without numpy's one BLAS call per t: the Gauss-Newton blocks J_x^T w J_x
+    and J_x^T w J_c of every observation."""
+    out = np.empty((A.shape[0], A.shape[2], B.shape[2]))
+    for t in range(A.shape[0]):
+        _small_matmul(A[t].T, B[t], out[t])
     return out
 
 
 @njit(cache=True, nogil=True)
 def whitened_blocks(root, W, point, rows):
     """Y (T, 3, c) with Y[t] = root[point[t]] @ W[rows[t]]: each observation's
-    U_i^-1/2 W_t for :func:`reduced_system`, in the order ``rows`` (by point).
-    Each entry is one chain of fused multiply-adds over the 3 terms, as
-    numpy's BLAS forms the product, so Y is numpy's stacked matmul to the bit
-    where that BLAS fuses (x86 OpenBLAS), without its one BLAS call per
-    observation (250 views x 3,000 points: 48 -> 25 ms, the rest gathering W
-    by point)."""
-    c = W.shape[2]
-    Y = np.empty((len(rows), 3, c))
+    U_i^-1/2 W_t for :func:`reduced_system`, in the order ``rows`` (by point),
+    each product as numpy's BLAS forms it (:func:`_small_matmul`), without its
+    one BLAS call per observation (250 views x 3,000 points: 48 -> 25 ms, the
+    rest gathering W by point)."""
+    Y = np.empty((len(rows), 3, W.shape[2]))
     for t in range(len(rows)):
-        r, w = root[point[t]], W[rows[t]]
-        for i in range(3):
-            for j in range(c):
-                Y[t, i, j] = _fma(r[i, 2], w[2, j], _fma(r[i, 1], w[1, j], r[i, 0] * w[0, j]))
+        _small_matmul(root[point[t]], W[rows[t]], Y[t])
     return Y
 
 

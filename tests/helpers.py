@@ -180,16 +180,18 @@ def finished_once(kids, configs):
 
 
 
+def exact_fma(a: float, b: float, c: float) -> float:
+    """a * b + c rounded once (exact arithmetic, then one rounding to float)."""
+    return float(Fraction(a) * Fraction(b) + Fraction(c))
+
+
 def blas_fuses_small_products() -> bool:
     """Whether numpy's BLAS forms a small product (3 x 3 @ 3 x 7) as one chain
     of fused multiply-adds along the inner index, from its first product, as
     x86 OpenBLAS does: then the kernels that copy that chain must give
     numpy's bits, not just its values."""
-    def fma(a, b, c):
-        return float(Fraction(a) * Fraction(b) + Fraction(c))
-
     rng = np.random.default_rng(0)
     A, B = rng.standard_normal((40, 3, 3)), rng.standard_normal((40, 3, 7))
-    chained = [[[fma(A[t, i, 2], B[t, 2, j], fma(A[t, i, 1], B[t, 1, j], A[t, i, 0] * B[t, 0, j]))
+    chained = [[[exact_fma(A[t, i, 2], B[t, 2, j], exact_fma(A[t, i, 1], B[t, 1, j], A[t, i, 0] * B[t, 0, j]))
                  for j in range(7)] for i in range(3)] for t in range(40)]
     return np.array_equal(A @ B, np.array(chained))

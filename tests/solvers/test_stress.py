@@ -1,12 +1,11 @@
 import os
-from fractions import Fraction
 
 import numpy as np
 import pytest
 
 from mpe3d.solvers import stress as stress_module
 from mpe3d.solvers.stress import Stress, project_rows
-from tests.helpers import scene_and_observations
+from tests.helpers import exact_fma, scene_and_observations
 
 
 def _numeric_grad(f, x, eps=1e-6):
@@ -163,7 +162,7 @@ def _blas_chains_fused_multiply_adds() -> bool:
     def fma_chain(a, b):
         total = 0.0
         for x, y in zip(a, b):
-            total = float(Fraction(x) * Fraction(y) + Fraction(total))
+            total = exact_fma(x, y, total)
         return total
 
     rng = np.random.default_rng(0)
