@@ -4,7 +4,7 @@ import pytest
 from mpe3d import solvers
 from mpe3d.errors import MpeError
 from mpe3d.harness.scene.metrics import roa
-from mpe3d.solvers.sgd import align_to_projections, random_projections
+from mpe3d.solvers.sgd import align_to_projections, procrustes_restarts, random_projections
 from mpe3d.solvers.starts import average_distances, complete_distances
 from mpe3d.solvers.stress import project_rows
 from tests.helpers import scene_and_observations
@@ -104,6 +104,38 @@ def test_align_to_projections_recovers_the_frame(rng):
     PQ, Pf = P @ Q, P @ found
     assert np.allclose(np.swapaxes(PQ, 1, 2) @ PQ, np.swapaxes(Pf, 1, 2) @ Pf, atol=1e-8)
 
+
+
+def _one_start(P_fit, P, Q, sweeps):
+    """The alternation for one start, as it ran before the starts were batched."""
+    err = np.inf
+    for _ in range(sweeps):
+        R = project_rows(P_fit @ np.swapaxes(P @ Q, 1, 2))
+        Q = project_rows(np.einsum("kai,kab,kbj->ij", P, np.swapaxes(R, 1, 2), P_fit))
+        previous, err = err, float(np.sum((P_fit - R @ P @ Q) ** 2))
+        if previous - err < 1e-15:
+            break
+    return Q, err
+
+
+@pytest.mark.parametrize("views, noise", [(2, 0.0), (5, 0.05), (9, 0.3), (20, 0.1)])
+def test_batched_procrustes_restarts_are_each_start_alone(views, noise):
+    """Every start's last Q and error, the same bits as one start at a time
+    (some starts stop after a few sweeps, others run all of them)."""
+    rng = np.random.default_rng(views)
+    P = random_projections(views, rng)
+    R2 = project_rows(rng.standard_normal((views, 2, 2)))
+    P_fit = project_rows(R2 @ P @ project_rows(rng.standard_normal((3, 3)))
+                         + noise * rng.standard_normal((views, 2, 3)))
+    draws = np.random.default_rng(1)
+    starts = np.concatenate([np.eye(3)[None], project_rows(draws.standard_normal((11, 3, 3)))])
+    Q, err = procrustes_restarts(P_fit, P, starts, sweeps=120)
+    alone = [_one_start(P_fit, P, start, 120) for start in starts]
+    np.testing.assert_array_equal(Q, np.array([q for q, _ in alone]))
+    np.testing.assert_array_equal(err, np.array([e for _, e in alone]))
+    # align_to_projections draws these starts from the same seed and keeps the first best
+    found = align_to_projections(P_fit, P, np.random.default_rng(1), restarts=12, sweeps=120)
+    np.testing.assert_array_equal(found, alone[int(np.argmin(err))][0])
 
 @pytest.mark.parametrize("options, message", [
     ({"step": "adam"}, "solver.step"), ({"c": 0.0}, "solver.c"), ({"max_iter": -1}, "solver.max_iter"),
