@@ -1203,43 +1203,82 @@ def _subtract_blocks(S, B, C, D):
     return S
 
 
-def warm(loss: str = "l2") -> None:
+def warm(loss: str = "l2", *, part: int = 0, parts: int = 1) -> None:
     """Compile (or load from the on-disk cache) every kernel a solve with the
     stress loss ``loss`` can call now, once per process, so that no solve pays
     for it inside its timed region.
 
     A robust loss's dense kernel (about 6 s of a 37 s first compile each) is
-    compiled only when a solve asks for that loss: most installs never do."""
+    compiled only when a solve asks for that loss: most installs never do.
+
+    With ``parts`` > 1, only the share ``part`` (0 <= part < parts) of every
+    kernel, each robust loss's included, whatever ``loss``. Numba compiles one
+    kernel at a time in a process, so ``parts`` processes compile a fresh
+    install's kernels side by side (the test suite does, before its workers
+    start; they then load them from the cache)."""
+    if parts > 1:
+        if not 0 <= part < parts:
+            raise ValueError(f"part must be in [0, {parts}), got {part}")
+        for step in _share(_warm_steps(every_loss=True), part, parts):
+            step()
+        return
     _warm_loss(LOSS_CODES.get(loss, L2))
     global warmed
     if warmed:
         return
+    for _, step in _warm_steps(every_loss=False):
+        step()
+    warmed = True
+
+
+def _share(steps: list, part: int, parts: int) -> list:
+    """The steps of ``part`` when ``steps`` (cost, call), longest first, go
+    one by one to the part with the least cost so far."""
+    loads, mine = [0.0] * parts, []
+    for cost, call in steps:
+        least = loads.index(min(loads))
+        loads[least] += cost
+        if least == part:
+            mine.append(call)
+    return mine
+
+
+def _warm_steps(every_loss: bool) -> list:
+    """One call a kernel, each compiling it all (one signature a kernel), with
+    its compile's seconds on a fresh cache (2026-12-05, one process after
+    another; only their ratios matter), longest first."""
     Y = _WARM_Y
-    # One signature per kernel, so one call each compiles it all.
-    view_stress(None, np.ones((3, 3)), Y, None, None, L2, 1.0, True)
-    view_stress((np.array([0, 1]), np.array([1, 2]), np.ones(2)), None, Y, None, None, L2, 1.0, True)
-    guttman_pass(np.ones((3, 3)), np.eye(3), np.empty((3, 3)))
     ints = functools.partial(np.array, dtype=np.int64)
-    l2_views(np.eye(3), np.eye(3)[None, :2], np.ones(9), ints([0, 9]), ints([0, 1, 2]), ints([0, 3]),
-             ints([]), ints([0, 0]), np.zeros(1, dtype=np.bool_), np.empty(0), ints([0, 0]), True, True,
-             np.zeros((3, 3)), np.zeros((1, 2, 3)))
     P, d = np.zeros((3, 2, 3)), np.ones(3)
     P[:, 0, 0] = P[:, 1, 1] = 1.0
-    place_point(np.zeros(3), P, Y, d, np.array([0, 1, 3]), 1.0, 5.0, 64, 1, 1)  # refine's weak points
-    row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))
-    # two views of one parameter and one shared: V is (2 * 1 + 1) square
-    reduced_system(np.eye(3), np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]), np.empty((2, 2, 1, 1)))
-    affine_als(np.array([0, 1]), np.array([0, 0]), np.ones((2, 2)), np.zeros((1, 3)),
-               np.ones(2, dtype=np.bool_), 2, 1, 0.0, 0.0)
-    sampson_costs(np.ones((1, 3, 3)), np.ones((2, 3)), np.ones((2, 3)), 1.0, 1.0)
-    eight_point_samples(np.ones((9, 3)), np.ones((9, 3)), np.ones((1, 9)))
-    transposed_products(np.ones((1, 2, 3)), np.ones((1, 2, 3)))
-    whitened_blocks(np.ones((1, 3, 3)), np.ones((1, 3, 6)), ints([0]), ints([0]))
-    pose_jacobians(np.ones((1, 3)), np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64),
-                   np.ones((1, 3, 3)), np.ones((1, 3, 3)), np.ones((1, 3)), np.ones(1), True,
-                   np.empty((1, 2, 3)), np.zeros((1, 2, 6)), np.empty((1, 2)))
-    subspace_costs(np.ones((1, 2, 4)), np.array([2]), np.ones((1, 1, 4)), np.ones((1, 1, 1, 4)), 1.0, 1.0)
-    warmed = True
+    losses = [(6.3, functools.partial(_warm_loss, code)) for code in (HUBER, SOFT_L1)] if every_loss else []
+    return [
+        (10.9, lambda: place_point(np.zeros(3), P, Y, d, np.array([0, 1, 3]), 1.0, 5.0, 64, 1, 1)),
+        *losses,
+        (6.1, lambda: view_stress(None, np.ones((3, 3)), Y, None, None, L2, 1.0, True)),
+        (5.3, lambda: pose_jacobians(np.ones((1, 3)), ints([0]), ints([0]), np.ones((1, 3, 3)),
+                                     np.ones((1, 3, 3)), np.ones((1, 3)), np.ones(1), True,
+                                     np.empty((1, 2, 3)), np.zeros((1, 2, 6)), np.empty((1, 2)))),
+        (4.8, lambda: affine_als(np.array([0, 1]), np.array([0, 0]), np.ones((2, 2)), np.zeros((1, 3)),
+                                 np.ones(2, dtype=np.bool_), 2, 1, 0.0, 0.0)),
+        # two views of one parameter and one shared: V is (2 * 1 + 1) square
+        (3.0, lambda: reduced_system(np.eye(3), np.ones((2, 3, 2)), np.array([0, 1]), np.array([0, 2]),
+                                     np.empty((2, 2, 1, 1)))),
+        (2.4, lambda: eight_point_samples(np.ones((9, 3)), np.ones((9, 3)), np.ones((1, 9)))),
+        (2.0, lambda: l2_views(np.eye(3), np.eye(3)[None, :2], np.ones(9), ints([0, 9]), ints([0, 1, 2]),
+                               ints([0, 3]), ints([]), ints([0, 0]), np.zeros(1, dtype=np.bool_),
+                               np.empty(0), ints([0, 0]), True, True, np.zeros((3, 3)),
+                               np.zeros((1, 2, 3)))),
+        (1.0, lambda: sampson_costs(np.ones((1, 3, 3)), np.ones((2, 3)), np.ones((2, 3)), 1.0, 1.0)),
+        (1.0, lambda: guttman_pass(np.ones((3, 3)), np.eye(3), np.empty((3, 3)))),
+        (0.9, lambda: subspace_costs(np.ones((1, 2, 4)), np.array([2]), np.ones((1, 1, 4)),
+                                     np.ones((1, 1, 1, 4)), 1.0, 1.0)),
+        (0.4, lambda: view_stress((np.array([0, 1]), np.array([1, 2]), np.ones(2)), None, Y, None, None,
+                                  L2, 1.0, True)),
+        (0.3, lambda: transposed_products(np.ones((1, 2, 3)), np.ones((1, 2, 3)))),
+        (0.3, lambda: row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))),
+        (0.3, lambda: whitened_blocks(np.ones((1, 3, 3)), np.ones((1, 3, 6)), ints([0]), ints([0]))),
+    ]
 
 
 def _warm_loss(code: int) -> None:

@@ -352,3 +352,46 @@ def test_compiled_affine_sweeps_are_the_numpy_ones(rng, noise):
     assert np.allclose(got[0], want[0], rtol=1e-7, atol=1e-7 * np.abs(want[0]).max())
     assert np.allclose(got[1], want[1], rtol=1e-7, atol=1e-9)
     assert np.all(got[0][71] == 0.0)
+
+
+WARMED = ("place_point", "view_stress", "pose_jacobians", "affine_als", "reduced_system", "eight_point_samples",
+          "l2_views", "sampson_costs", "guttman_pass", "subspace_costs", "transposed_products",
+          "row_median_residuals", "whitened_blocks")
+
+
+@pytest.mark.parametrize("parts", [2, 3, 4])
+def test_warm_in_parts_calls_every_kernel_of_every_loss_once(monkeypatch, parts):
+    """The shares of ``warm(part=, parts=)`` are disjoint and together compile
+    what ``warm`` does for every loss: no kernel is left for the suite's
+    workers to compile, nor compiled twice side by side."""
+    calls = []
+
+    def record(name):
+        def call(*args):
+            loss = args[5] if name == "view_stress" else None  # each loss has its own kernel
+            calls.append((name, loss, args[0] is None if name == "view_stress" else None))
+        return call
+
+    for name in WARMED:
+        monkeypatch.setattr(kernels, name, record(name))
+
+    def one_process():
+        monkeypatch.setattr(kernels, "warmed", False)
+        monkeypatch.setattr(kernels, "_warm_losses", set())
+        calls.clear()
+        for loss in ("l2", "huber", "soft_l1"):
+            kernels.warm(loss)
+        return sorted(calls, key=repr)
+
+    expected = one_process()
+    assert {name for name, _, _ in expected} == set(WARMED) and len(expected) == len(WARMED) + 3
+    shares = []
+    for part in range(parts):
+        monkeypatch.setattr(kernels, "_warm_losses", set())
+        calls.clear()
+        kernels.warm(part=part, parts=parts)
+        shares.append(list(calls))
+    assert all(shares)  # every process has something to compile
+    assert sorted((c for share in shares for c in share), key=repr) == expected
+    with pytest.raises(ValueError, match="part must be in"):
+        kernels.warm(part=parts, parts=parts)
