@@ -32,8 +32,8 @@ def pytest_sessionstart(session):
     the suite's first minute had each worker, and each sweep they started,
     compiling the same kernels at once (the suite took 636 s with an empty
     numba cache against 533 s with a full one, on 2 cores). Side by side in
-    one process per core they take about 20 s; with the cache full, loading
-    them costs a second or two."""
+    one process per core they take 27 s there (52 s in one process); with
+    the cache full, loading them costs a second or two."""
     config = session.config
     if hasattr(config, "workerinput") or config.option.collectonly:
         return  # a worker (the controller did it), or nothing will run
@@ -41,7 +41,7 @@ def pytest_sessionstart(session):
     code = "import sys; from mpe3d.solvers import kernels; kernels.warm(part=int(sys.argv[1]), parts={})"
     compiling = [subprocess.Popen([sys.executable, "-c", code.format(parts), str(part)])
                  for part in range(parts)]
-    if any(process.wait() for process in compiling):
+    if any([process.wait() for process in compiling]):  # each waited for, failed or not
         pytest.exit("compiling the kernels failed (see above)", returncode=3)
 
 
