@@ -1,8 +1,10 @@
 """Compiled passes: the 3DMPE stress (paper Eq. 1) one view at a time or all
 dense views in one call (:func:`l2_views`), SMACOF's
-Guttman transform, placing one point against anchors, the Schur term of
-bundle adjustment's reduced camera system, and the RANSAC scores of the
-two-view tests of wrong matches.
+Guttman transform, placing one point against anchors, the affine
+factorisation's alternating least squares, bundle adjustment's per-observation
+blocks (Jacobians, J^T w J, U^-1/2 W) and the Schur term of its reduced
+camera system, and RANSAC's eight-point samples and scores in the two-view
+tests of wrong matches.
 
 For each pair i < j of a view the stress kernel forms the image distance
 e_ij = ||y_i - y_j||, the residual r_ij = D_ij - e_ij, its weight
