@@ -8,12 +8,17 @@ of params, metrics, the stress history and two PLY artifacts, then a second
 invocation that finds everything done. The overhead per run is the sweep's
 wall time minus the time the runs themselves took (their ``wall_s``), over
 the run count. Target: <= 0.15 s per run with artifacts.
+
+A last line times opening a new SQLite store, in this process after a first
+one: made by MLflow's schema migrations (no cache folder to keep a template
+in) against copied from the template MLflow made once (``--stores`` each).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import tempfile
@@ -22,6 +27,7 @@ from pathlib import Path
 
 from mpe3d import Tracker, load_sweep
 from mpe3d.harness.runner import plan_sweeps, run_plans
+from mpe3d.harness.tracking.store import store_template
 
 TARGET_S = 0.15
 SWEEP = """
@@ -56,9 +62,25 @@ def case(folder: Path, runs: int, jobs: int, artifacts: bool) -> dict:
             "python": platform.python_version()}
 
 
+def new_stores(folder: Path, count: int) -> dict:
+    """Seconds to open a new store, made by MLflow and copied from the template."""
+    seconds = {}
+    for way, cache in (("made_by_mlflow", folder / "a-file"), ("copied", folder / "cache")):
+        os.environ["XDG_CACHE_HOME"] = str(cache)  # a file: no template can be kept there
+        store_template()  # made once, as the first store a user opens makes it
+        start = time.perf_counter()
+        for i in range(count):
+            Tracker(f"sqlite:///{folder}/{way}{i}.db")
+        seconds[way] = (time.perf_counter() - start) / count
+    return {"benchmark": "store_open", "stores": count,
+            **{f"{way}_s": round(s, 3) for way, s in seconds.items()},
+            "ratio": round(seconds["made_by_mlflow"] / seconds["copied"], 1)}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--runs", type=int, default=100)
+    parser.add_argument("--stores", type=int, default=5)
     parser.add_argument("--jobs", type=int, default=1,
                         help="1 runs in this process, so the wall time is all harness and runs")
     args = parser.parse_args(argv)
@@ -66,6 +88,8 @@ def main(argv=None) -> int:
         Tracker(f"sqlite:///{folder}/mlflow.db").experiment_names()  # create the schema first
         for artifacts in (True, False):
             print(json.dumps(case(Path(folder), args.runs, args.jobs, artifacts)), flush=True)
+        (Path(folder) / "a-file").write_text("")
+        print(json.dumps(new_stores(Path(folder), args.stores)), flush=True)
     return 0
 
 

@@ -47,6 +47,12 @@ def _keep_copy(path: Path, backup: Path) -> None:
         shutil.copy2(path, backup)
 
 
+def cache_folder() -> Path:
+    """Where mpe3d keeps what it can always make again: ``$XDG_CACHE_HOME/mpe3d``
+    (``~/.cache/mpe3d``). Its users read it tolerantly and may fail to write it."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "mpe3d"
+
+
 def atomic_write(path: str | Path, write) -> None:
     """``write(temp_path)``, then rename over ``path``: never a half-written file."""
     write_together([(Path(path), write)])

@@ -34,6 +34,8 @@ import sys
 from functools import lru_cache
 from pathlib import Path
 
+from mpe3d.harness.files import cache_folder
+
 PACKAGE = "mpe3d"
 RUN_ENTRY = "mpe3d.harness.experiment.execute"  # where a worker starts a run: every pipeline is below it
 SOLVERS = "mpe3d.solvers"
@@ -161,8 +163,7 @@ class _ParseCache:
 
     def __init__(self):
         own = hashlib.sha256(Path(__file__).read_bytes() + sys.version.encode()).hexdigest()[:16]
-        root = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-        self.path = root / "mpe3d" / f"identity-{own}.json"
+        self.path = cache_folder() / f"identity-{own}.json"
         self.changed = False
         try:
             self.entries = json.loads(self.path.read_text())

@@ -10,8 +10,10 @@ an explicit URI (``sqlite:///...``, ``http://host:port``) points elsewhere.
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import logging
 import os
+import shutil
 import socket
 import tempfile
 import time
@@ -22,7 +24,7 @@ from typing import Any, Iterator, Mapping
 import numpy as np
 
 from mpe3d.errors import DiskFull, MpeError, StoreError, first_line, suggest
-from mpe3d.harness.files import failed_path, free_bytes, human_bytes, no_space
+from mpe3d.harness.files import cache_folder, failed_path, free_bytes, human_bytes, no_space
 from mpe3d.harness.tracking.identity import code_identity, git_commit, is_current
 from mpe3d.harness.tracking.ownership import STALE_S, Owner
 
@@ -172,19 +174,84 @@ def _open_sqlite(uri: str, database: Path):
         database.parent.mkdir(parents=True, exist_ok=True)
         with _file_lock(lock):
             new = not database.exists() or database.stat().st_size == 0
-            if new:
-                import sqlite3
-
-                with contextlib.closing(sqlite3.connect(database)) as connection:
-                    connection.execute("PRAGMA journal_mode=WAL")
-            client = MlflowClient(tracking_uri=uri)
-            client.search_experiments(max_results=1)  # creates the tables, now, under the lock
+            client = _copied_store(uri, database) if new else None
+            if client is None:
+                if new:
+                    _empty_database(database)
+                client = MlflowClient(tracking_uri=uri)
+                client.search_experiments(max_results=1)  # creates the tables, now, under the lock
     except BaseException as exc:
         _remove(made)  # a failed opening leaves the user's folder as it was
         if isinstance(exc, OSError) and not no_space(exc):
             raise StoreError(f"tracking store {uri}: cannot open it: {exc.strerror or exc}") from None
         raise
     return client
+
+
+def _empty_database(database: Path) -> None:
+    """An empty SQLite file in WAL mode."""
+    import sqlite3
+
+    with contextlib.closing(sqlite3.connect(database)) as connection:
+        connection.execute("PRAGMA journal_mode=WAL")
+
+
+def store_template() -> Path | None:
+    """An empty store as MLflow makes it: its schema at the installed MLflow's
+    head, no experiment in it (MLflow adds its Default experiment, with this
+    store's artifact location, when it opens a copy). Made once per version of
+    MLflow, SQLAlchemy and alembic, in the cache folder: MLflow's ~60 schema
+    migrations cost a new store about a second; a copy is checked instead.
+    None where the template cannot be made or kept."""
+    import sqlite3
+
+    import alembic
+    import mlflow
+    import sqlalchemy
+    from mlflow.tracking import MlflowClient
+
+    versions = f"{mlflow.__version__} {sqlalchemy.__version__} {alembic.__version__}"
+    path = cache_folder() / f"mlflow-store-{hashlib.sha256(versions.encode()).hexdigest()[:16]}.db"
+    if path.is_file():
+        return path
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryDirectory(dir=path.parent, prefix=".store-") as folder:
+            made, part = Path(folder) / "made.db", Path(folder) / "template.db"
+            _empty_database(made)
+            MlflowClient(tracking_uri=f"sqlite:///{made}").search_experiments(max_results=1)
+            with contextlib.closing(sqlite3.connect(made)) as source, \
+                    contextlib.closing(sqlite3.connect(part)) as copy:
+                source.execute("DELETE FROM experiments")  # its Default's artifacts: under this cwd
+                source.commit()
+                source.backup(copy)  # the pages still in the write-ahead log too
+            os.replace(part, path)  # whole or not at all, whoever makes it last
+    except Exception:  # noqa: BLE001 - without a template, MLflow makes the store itself
+        return None
+    return path
+
+
+def _copied_store(uri: str, database: Path):
+    """A client on a new store copied from :func:`store_template`, or None
+    (the copy removed, the template too) where there is none or MLflow
+    refuses the copy; MLflow then makes the store itself."""
+    from mlflow.tracking import MlflowClient
+
+    template = store_template()
+    if template is None:
+        return None
+    try:
+        shutil.copyfile(template, database)
+        _empty_database(database)  # the same journal mode as a store MLflow made
+        client = MlflowClient(tracking_uri=uri)
+        client.search_experiments(max_results=1)  # MLflow checks the schema, adds its Default
+        return client
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign template: made again next time
+        for path in (database, *(database.with_name(database.name + s) for s in ("-wal", "-shm"))):
+            path.unlink(missing_ok=True)
+        if not no_space(exc):
+            template.unlink(missing_ok=True)
+        return None
 
 
 def _not_yet(database: Path, lock: Path) -> list[Path]:

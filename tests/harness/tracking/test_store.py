@@ -1,5 +1,6 @@
 """Sweeps end to end: real joblib workers, a real SQLite MLflow store, a real
 ``mlflow server`` and a real dask cluster on 127.0.0.1."""
+import contextlib
 import io
 import json
 import os
@@ -327,6 +328,51 @@ def test_a_failed_store_opening_leaves_no_litter(tmp_path, capsys, monkeypatch):
     with pytest.raises(StoreError, match="the disk said no"):
         Tracker(f"sqlite:///{tmp_path}/new/deeper/t.db")
     assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def _store_contents(database):
+    """A SQLite store's schema, its journal mode and every row but the times.
+    Each statement's lines are sorted: MLflow's own migrations write a table's
+    constraints in an order that varies from one store to the next."""
+    import sqlite3
+
+    with contextlib.closing(sqlite3.connect(database)) as connection:
+        schema = [(kind, name, sorted(line.strip(" ,") for line in (sql or "").splitlines()))
+                  for kind, name, sql in connection.execute(
+                      "SELECT type, name, sql FROM sqlite_master ORDER BY name")]
+        rows = {table: connection.execute(f"SELECT * FROM {table}").fetchall()
+                for kind, table, _ in schema if kind == "table"}
+        mode = connection.execute("PRAGMA journal_mode").fetchone()
+    rows["experiments"] = [row[:4] + row[6:] for row in rows["experiments"]]  # not its two times
+    return schema, rows, mode
+
+
+def test_a_new_store_is_a_copy_of_the_one_mlflow_makes_and_a_bad_template_is_made_again(tmp_path, monkeypatch):
+    from mpe3d.harness.tracking.store import Tracker, store_template
+
+    monkeypatch.chdir(tmp_path)  # MLflow's Default experiment keeps its artifacts under ./mlruns
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "a-file"))  # no cache folder can be made there
+    assert store_template() is None
+    Tracker(f"sqlite:///{tmp_path}/own/mlflow.db")  # MLflow runs its migrations
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    template = store_template()  # made where MLflow would put its Default experiment elsewhere
+    assert template.parent == tmp_path / "cache" / "mpe3d"
+    monkeypatch.chdir(tmp_path)
+    Tracker(f"sqlite:///{tmp_path}/copy/mlflow.db")
+    own = _store_contents(tmp_path / "own" / "mlflow.db")
+    assert own[1]["experiments"] and own[2] == ("wal",)  # MLflow's Default experiment; WAL
+    assert _store_contents(tmp_path / "copy" / "mlflow.db") == own
+    assert _store_contents(template)[1]["experiments"] == []  # MLflow adds it for each copy
+    template.write_bytes(b"not a store")  # damaged: refused, MLflow makes the store, then a new template
+    Tracker(f"sqlite:///{tmp_path}/after/mlflow.db")
+    assert _store_contents(tmp_path / "after" / "mlflow.db") == own
+    assert not template.exists()
+    assert _store_contents(store_template()) == _store_contents(tmp_path / "cache" / "mpe3d" / template.name)
+    Tracker(f"sqlite:///{tmp_path}/again/mlflow.db")
+    assert _store_contents(tmp_path / "again" / "mlflow.db") == own
 
 
 def test_runs_of_the_papers_full_sweeps_fit_a_120_column_terminal(monkeypatch):
