@@ -181,6 +181,18 @@ def _ignore_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+@contextlib.contextmanager
+def _sigint_held() -> Iterator[None]:
+    """SIGINT held back from this thread, and delivered when released. A
+    process or thread started meanwhile inherits the block, so a worker cannot
+    meet a Ctrl-C before :func:`_ignore_sigint` runs in it."""
+    held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, held)
+
+
 def _is_loky_worker(process) -> bool:
     return any("LokyProcess" in part for part in process.cmdline())
 
@@ -189,15 +201,22 @@ class _LokyPool:
     """Worker processes on this machine (joblib's loky executor)."""
 
     def __init__(self, jobs: int):
+        from multiprocessing import resource_tracker
+
         from joblib.externals.loky import get_reusable_executor
 
         workers = jobs if jobs > 0 else (os.cpu_count() or 1)
         self.workers = workers
         self.capacity = 2 * workers  # one queued behind each running: no worker waits for a claim
-        self.executor = get_reusable_executor(max_workers=workers, initializer=_ignore_sigint)
+        # loky starts Python's resource tracker with each worker; starting it
+        # unblocks SIGINT (Python 3.11), so it is started first, unheld
+        resource_tracker.ensure_running()
+        with _sigint_held():  # loky starts workers (and its manager thread) in these calls
+            self.executor = get_reusable_executor(max_workers=workers, initializer=_ignore_sigint)
 
     def submit(self, fn, *args) -> cf.Future:
-        return self.executor.submit(fn, *args)
+        with _sigint_held():
+            return self.executor.submit(fn, *args)
 
     def close(self) -> None:
         """Nothing: the reusable executor serves the next sweep of this process."""

@@ -2,7 +2,7 @@
 
     python scripts/interrupt_trials.py [--trials 50] [--seed 0] [--jobs 2]
 
-Each trial (``tests/interrupts.py``) starts ``mpe3d sweep`` in its own
+Each trial (``tests/harness/interrupts.py``) starts ``mpe3d sweep`` in its own
 session, interrupts it at a random moment (planning, mid-run, while logging,
 while replaying a dead sweep's journal) in a random way (Ctrl-C to the
 group, twice, SIGINT or SIGTERM to the main process), then checks: exit 130
@@ -23,7 +23,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tests.interrupts import LAST_LINE, MOMENTS, trial  # noqa: E402
+from tests.harness.interrupts import LAST_LINE, MOMENTS, trial  # noqa: E402
 
 HOWS = ("group-sigint", "group-sigint", "double-sigint", "sigint", "sigterm")
 

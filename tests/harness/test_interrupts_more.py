@@ -57,3 +57,31 @@ def test_a_command_that_is_over_leaves_even_when_an_exit_hook_hangs():
     start = time.monotonic()
     done = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=60)
     assert done.returncode == 3 and time.monotonic() - start < 30, done
+
+
+def test_workers_are_born_with_ctrl_c_blocked(tmp_path):
+    """Ctrl-C reaches the whole process group. A worker it reached before its
+    initializer could ignore it died, and the sweep with it: a traceback and
+    exit -2, not 130 (a clean-clone CI run hit that moment). Workers are
+    started with SIGINT blocked, so there is no such moment, and the sweep's
+    own process gets its Ctrl-C as before."""
+    import re
+    import signal
+    from pathlib import Path
+
+    import psutil
+
+    from mpe3d.harness.cli import main
+
+    path = tmp_path / "s.yaml"
+    path.write_text("name: s\nbase: {shape: torus, points: 48, solver: baseline}\nrepeats: 2\n")
+    assert main(["sweep", str(path), "--jobs", "2", "--quiet", "--no-artifacts",
+                 "--tracking-uri", f"sqlite:///{tmp_path}/t.db"]) == 0
+    workers = [p for p in psutil.Process().children() if "LokyProcess" in " ".join(p.cmdline())]
+    assert len(workers) == 2  # the reusable executor keeps them for the next sweep
+
+    def blocked(status: str) -> bool:
+        mask = int(re.search(r"SigBlk:\s*([0-9a-f]+)", status).group(1), 16)
+        return bool(mask & (1 << (signal.SIGINT - 1)))
+    assert all(blocked(Path(f"/proc/{w.pid}/status").read_text()) for w in workers)
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])  # ours is not
