@@ -166,7 +166,6 @@ def _open_sqlite(uri: str, database: Path):
     under a lock file beside the database. A new store is put in WAL mode:
     readers then never block the writers of a concurrent sweep.
     """
-    from mlflow.tracking import MlflowClient
 
     lock = database.with_name(database.name + ".lock")
     made = _not_yet(database, lock)
@@ -176,10 +175,7 @@ def _open_sqlite(uri: str, database: Path):
             new = not database.exists() or database.stat().st_size == 0
             client = _copied_store(uri, database) if new else None
             if client is None:
-                if new:
-                    _empty_database(database)
-                client = MlflowClient(tracking_uri=uri)
-                client.search_experiments(max_results=1)  # creates the tables, now, under the lock
+                client = _client(uri, database, new)
     except BaseException as exc:
         _remove(made)  # a failed opening leaves the user's folder as it was
         if isinstance(exc, OSError) and not no_space(exc):
@@ -188,12 +184,25 @@ def _open_sqlite(uri: str, database: Path):
     return client
 
 
-def _empty_database(database: Path) -> None:
-    """An empty SQLite file in WAL mode."""
+def _client(uri: str, database: Path, new: bool):
+    """MLflow's client on ``database``, which MLflow opens now: it makes the
+    tables of an empty file, or checks a copied store's schema and adds its
+    Default experiment. A ``new`` file is put in WAL mode first."""
     import sqlite3
 
-    with contextlib.closing(sqlite3.connect(database)) as connection:
-        connection.execute("PRAGMA journal_mode=WAL")
+    from mlflow.tracking import MlflowClient
+
+    if new:
+        with contextlib.closing(sqlite3.connect(database)) as connection:
+            connection.execute("PRAGMA journal_mode=WAL")
+    client = MlflowClient(tracking_uri=uri)
+    client.search_experiments(max_results=1)
+    return client
+
+
+def _side_files(database: Path) -> list[Path]:
+    """What SQLite keeps beside ``database``."""
+    return [database.with_name(database.name + suffix) for suffix in ("-wal", "-shm", "-journal")]
 
 
 def store_template() -> Path | None:
@@ -208,7 +217,6 @@ def store_template() -> Path | None:
     import alembic
     import mlflow
     import sqlalchemy
-    from mlflow.tracking import MlflowClient
 
     versions = f"{mlflow.__version__} {sqlalchemy.__version__} {alembic.__version__}"
     path = cache_folder() / f"mlflow-store-{hashlib.sha256(versions.encode()).hexdigest()[:16]}.db"
@@ -218,8 +226,7 @@ def store_template() -> Path | None:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.TemporaryDirectory(dir=path.parent, prefix=".store-") as folder:
             made, part = Path(folder) / "made.db", Path(folder) / "template.db"
-            _empty_database(made)
-            MlflowClient(tracking_uri=f"sqlite:///{made}").search_experiments(max_results=1)
+            _client(f"sqlite:///{made}", made, new=True)
             with contextlib.closing(sqlite3.connect(made)) as source, \
                     contextlib.closing(sqlite3.connect(part)) as copy:
                 source.execute("DELETE FROM experiments")  # its Default's artifacts: under this cwd
@@ -235,19 +242,15 @@ def _copied_store(uri: str, database: Path):
     """A client on a new store copied from :func:`store_template`, or None
     (the copy removed, the template too) where there is none or MLflow
     refuses the copy; MLflow then makes the store itself."""
-    from mlflow.tracking import MlflowClient
 
     template = store_template()
     if template is None:
         return None
     try:
         shutil.copyfile(template, database)
-        _empty_database(database)  # the same journal mode as a store MLflow made
-        client = MlflowClient(tracking_uri=uri)
-        client.search_experiments(max_results=1)  # MLflow checks the schema, adds its Default
-        return client
+        return _client(uri, database, new=True)
     except Exception as exc:  # noqa: BLE001 - a damaged or foreign template: made again next time
-        for path in (database, *(database.with_name(database.name + s) for s in ("-wal", "-shm"))):
+        for path in (database, *_side_files(database)):
             path.unlink(missing_ok=True)
         if not no_space(exc):
             template.unlink(missing_ok=True)
@@ -257,7 +260,7 @@ def _copied_store(uri: str, database: Path):
 def _not_yet(database: Path, lock: Path) -> list[Path]:
     """What opening ``database`` may create that is not there yet, deepest first:
     the store and its SQLite side files, the lock, the folders above them."""
-    side = [database.with_name(database.name + suffix) for suffix in ("-wal", "-shm", "-journal")]
+    side = _side_files(database)
     folders, folder = [], database.parent
     while not folder.exists():
         folders.append(folder)
