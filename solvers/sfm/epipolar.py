@@ -34,7 +34,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 
 from mpe3d.solvers.kernels import eight_point_samples, sampson_costs, subspace_costs
-from mpe3d.solvers.threads import map_drawn
+from mpe3d.solvers.threads import map_drawn, map_in_order
 
 SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged
 MIN_COMMON = 12  # points two views must share to be tested together
@@ -45,7 +45,8 @@ MIN_FUNDAMENTAL = 50
 PARTNERS = 8  # views tested with each view: those sharing the most points with it
 TRIALS = 100  # RANSAC samples per pair
 _SCORED = 2000  # matches a sample is scored on (all of them for smaller pairs)
-_STACKED = 256  # pairs with more matches are tested one at a time, not stacked
+_DRAWN = 256  # the random numbers are drawn as if pairs with more matches stood alone
+_STACK = 128  # arrays per stack: a fixed split, so the threads share the work
 _MAD = 0.6745  # median |r| / sigma for Gaussian r
 
 
@@ -232,37 +233,53 @@ def off_affine_subspace(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float =
 def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0,
                          rng=None, dim: int = 3) -> list:
     """:func:`off_affine_subspace` of each (n_b, d) array of ``qs`` at once: the
-    arrays are padded to one (B, n, d) stack, because a two-view test of a long
-    sequence is hundreds of pairs of ~20 matches, where numpy's per-call cost
-    is most of the work (backyard: 1.0 s one pair at a time)."""
+    arrays are padded to (B, n, d) stacks of like sizes, because a two-view
+    test of a long sequence is hundreds of pairs of a few hundred matches at
+    most, where numpy's per-call cost is most of the work (backyard: 1.0 s one
+    pair at a time; 250 views x 3,000 points, 1,270 pairs of 228-319: 4.3 s
+    with those over 256 alone, 2.2 s stacked)."""
     if not qs:  # views sharing too few points for any pair to be tested
         return []
     rng = np.random.default_rng(0) if rng is None else rng
     sizes = np.array([len(q) for q in qs])
-    buckets = np.ceil(np.log2(np.maximum(sizes, 1))).astype(int)  # pad to at most twice
-    # large ones alone: numpy's overhead is nothing there, and unpadded medians partition
-    buckets = np.where(sizes > _STACKED, -1 - np.arange(len(qs)), buckets)
-    groups = [np.flatnonzero(buckets == bucket) for bucket in np.unique(buckets)]
+    draws = [None] * len(qs)
+    for members in _stacks(sizes, _DRAWN, len(qs)):  # the order the numbers have always come in
+        chosen, fractions = _affine_draws(sizes[members], rng, dim)
+        for i, rows, sample in zip(members, chosen, fractions):
+            draws[i] = rows, sample
+    groups = _stacks(sizes, _SCORED, _STACK)
+    tested = map_in_order(lambda members: _off_affine_subspaces(
+        [qs[i] for i in members], [draws[i] for i in members], sigmas, floor, dim), groups)
     far = [None] * len(qs)
-    tested = map_drawn(lambda members: _affine_draws(sizes[members], rng, dim),  # in the buckets' order
-                       lambda members, draws: _off_affine_subspaces([qs[i] for i in members], draws,
-                                                                    sigmas, floor, dim), groups)
     for members, result in zip(groups, tested):
         for i, f in zip(members, result):
             far[i] = f
     return far
 
 
+def _stacks(sizes: np.ndarray, alone: int, most: int) -> list:
+    """Index arrays of the arrays stacked together: those of up to ``alone`` rows
+    by their power of two (padded to at most twice), ``most`` to a stack, the
+    larger ones each alone (numpy's overhead is nothing there, and unpadded
+    medians partition). Stacks of single arrays come first, the last array's
+    first, as they always have."""
+    buckets = np.ceil(np.log2(np.maximum(sizes, 1))).astype(int)
+    buckets = np.where(sizes > alone, -1 - np.arange(len(sizes)), buckets)
+    groups = [np.flatnonzero(buckets == bucket) for bucket in np.unique(buckets)]
+    return [group[start:start + most] for group in groups for start in range(0, len(group), most)]
+
+
 def _affine_draws(sizes, rng, dim: int):
-    """The random numbers :func:`_off_affine_subspaces` uses for a stack of
-    arrays of ``sizes`` rows: the rows each array is scored on, then each
-    sample's rows (as fractions of the array's length)."""
+    """The random numbers :func:`_off_affine_subspaces` uses for arrays of
+    ``sizes`` rows: the rows each array is scored on (None: all), then each
+    sample's rows (as fractions of the array's length), (B, TRIALS, dim + 1)."""
     scored = [rng.choice(n, _SCORED, replace=False) if n > _SCORED else None for n in sizes]
     return scored, rng.random((len(sizes), TRIALS, dim + 1))
 
 
 def _off_affine_subspaces(qs, draws, sigmas, floor, dim) -> list:
-    """:func:`off_affine_subspaces` of one stack, its random numbers drawn."""
+    """:func:`off_affine_subspaces` of one stack, each array's random numbers
+    drawn (``draws``: its scored rows and its samples' fractions)."""
     Q, valid = _padded(qs)
     counts = valid.sum(axis=1)
     centre = _masked_median(Q, valid[:, :, None], axis=1)
@@ -270,7 +287,8 @@ def _off_affine_subspaces(qs, draws, sigmas, floor, dim) -> list:
                            np.repeat(valid, Q.shape[2], axis=1), axis=1)
     scale = np.where(scale > 0, scale, 1.0)
     Q = (Q - centre[:, None]) / scale[:, None, None]  # conditioned: distances of O(1)
-    chosen, fractions = draws
+    chosen = [rows for rows, _ in draws]
+    fractions = np.stack([sample for _, sample in draws])
     scored, scored_valid = _padded([q if rows is None else q[rows]
                                     for q, rows in zip(_unpadded(Q, counts), chosen)])
     # a repeated row gives a bad fit: harmless
