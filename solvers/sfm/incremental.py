@@ -36,7 +36,7 @@ from mpe3d.solvers.factorize import metric_upgrade_pd
 from mpe3d.solvers.linalg import fit_views, rows_of
 from mpe3d.solvers.sfm.adjust import adjust
 from mpe3d.solvers.sfm.cameras import Cameras, affine_cameras
-from mpe3d.solvers.sfm.epipolar import off_affine_subspace
+from mpe3d.solvers.sfm.epipolar import off_affine_subspace, off_affine_subspace_each
 from mpe3d.solvers.sfm.tracks import Tracks, image_size, residual_lengths, robust_sigma
 from mpe3d.solvers.sfm.triangulation import least_squares_points, robust_points
 from mpe3d.solvers.stress import project_rows
@@ -192,10 +192,11 @@ def _resect(tracks, added, placed, floor, X, P, s, t):
     """Each added view's scaled camera from its placed points: a robust affine
     fit (the rows (x_i, z_i) lie on a 3D subspace of R^5), made orthonormal."""
     rows = np.isin(tracks.view, added) & placed[tracks.point]
-    for k in added:
-        mine = np.flatnonzero(rows & (tracks.view == k))
-        far = off_affine_subspace(np.hstack([X[tracks.point[mine]], tracks.z[mine]]), floor=floor)
-        rows[mine[far]] = False
+    mine = [np.flatnonzero(rows & (tracks.view == k)) for k in added]
+    far = off_affine_subspace_each([np.hstack([X[tracks.point[m]], tracks.z[m]]) for m in mine],
+                                   floor=floor)
+    for m, f in zip(mine, far):
+        rows[m[f]] = False
     L, origin = fit_views(X, tracks.view, tracks.point, tracks.z, tracks.n_views, rows)
     P[added], s[added] = _scaled_rows(L[added].transpose(0, 2, 1))
     t[added] = origin[added]
