@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mpe3d.solvers.kernels import lowest_cosines
 from mpe3d.solvers.linalg import pinv_psd, sum_by
 
 PAIRS = 30  # two-view hypotheses tried per point
@@ -169,12 +170,6 @@ def widest_angles(rays: np.ndarray, point: np.ndarray, n_points: int, lines: boo
     """(n_points,) the widest angle, in degrees, between any two rays of each
     point (0 for a point with fewer than two): COLMAP's triangulation angle."""
     order = np.argsort(point, kind="stable")
-    p, u = point[order], rays[order]
-    lowest = np.ones(n_points)  # the cosine of the widest angle so far
-    for gap in range(1, len(p)):
-        same = p[gap:] == p[:-gap]  # sorted: pairs `gap` apart within one point
-        if not same.any():
-            break
-        cos = np.einsum("ti,ti->t", u[gap:][same], u[:-gap][same])
-        np.minimum.at(lowest, p[gap:][same], np.abs(cos) if lines else cos)
+    lowest = lowest_cosines(np.ascontiguousarray(rays[order], dtype=float), point[order].astype(np.int64),
+                            n_points, bool(lines))
     return np.degrees(np.arccos(np.clip(lowest, -1.0, 1.0)))
