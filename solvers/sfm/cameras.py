@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpe3d.solvers.kernels import pose_jacobians
+from mpe3d.solvers.kernels import grouped_matvecs, pose_jacobians
 from mpe3d.solvers.linalg import matvec_by_group
 
 CAMERAS = ("orthographic", "scaled", "perspective", "radial")
@@ -145,12 +145,12 @@ class Cameras:
         """u_t for the observations (view[t], point[t]) of the points X, (T, 2)."""
         if self.model == AFFINE:
             A = self.params[:, :6].reshape(-1, 2, 3)
-            return matvec_by_group(A, view, X[point]) + self.params[view, 6:8]
+            return _matvecs(A, view, X, point) + self.params[view, 6:8]
         if self.model == MATRIX:
-            p = matvec_by_group(self.rotations[:, :, :3], view, X[point]) + self.rotations[view, :, 3]
+            p = _matvecs(self.rotations[:, :, :3], view, X, point) + self.rotations[view, :, 3]
             return p[:, :2] / p[:, 2:3]  # a matrix's overall sign is the user's: no cheirality
         R = self.current_rotations()
-        q = matvec_by_group(R, view, X[point])
+        q = _matvecs(R, view, X, point)
         if self.model not in PINHOLES:
             s = self.scale()[view, None]
             return s * q[:, :2] + self.params[view, 3:5]
@@ -334,3 +334,17 @@ def with_distortion(cameras: Cameras) -> Cameras:
     cam = cameras.reanchored()
     return radial_cameras(cam.rotations, cam.params[:, 3:6], cam.focal(),
                           np.zeros(2), cam.principal_point, shared=bool(cam.shared.size))
+
+
+def _matvecs(M, view, X, point):
+    """(T, a): M[view[t]] @ X[point[t]], compiled (:func:`~mpe3d.solvers.kernels.grouped_matvecs`):
+    the bits of :func:`~mpe3d.solvers.linalg.matvec_by_group`'s per-view products.
+    A view with one observation is left to that function: numpy's BLAS forms
+    a one-row product by another kernel (gemv), which rounds otherwise."""
+    view, point = np.asarray(view, dtype=np.int64), np.asarray(point, dtype=np.int64)
+    out = grouped_matvecs(np.ascontiguousarray(M, dtype=float), view, np.ascontiguousarray(X, dtype=float),
+                          point)
+    single = np.bincount(view, minlength=len(M))[view] == 1
+    if single.any():
+        out[single] = matvec_by_group(M, view[single], X[point[single]])
+    return out

@@ -6,6 +6,7 @@ from scipy.sparse import csr_matrix
 
 from mpe3d.errors import MpeError
 from mpe3d.solvers.degenerate import DegenerateWarning
+from mpe3d.solvers.linalg import matvec_by_group
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.cameras import (
     AFFINE,
@@ -17,6 +18,7 @@ from mpe3d.solvers.sfm.cameras import (
     right_jacobian,
     with_distortion,
 )
+from mpe3d.solvers.sfm.triangulation import widest_angles
 from tests.helpers import SHARED, blas_fuses_small_products
 
 N, K = 60, 6
@@ -129,6 +131,72 @@ def _numpy_sums_as_the_kernel_does(rng) -> bool:
     R, x = rng.standard_normal((40, 3, 3)), rng.standard_normal((40, 3))
     paired = (R[:, :, 0] * x[:, None, 0] + R[:, :, 2] * x[:, None, 2]) + R[:, :, 1] * x[:, None, 1]
     return blas_fuses_small_products() and np.array_equal(np.einsum("tij,tj->ti", R, x), paired)
+
+
+@pytest.mark.parametrize("model", ["affine", "scaled", "perspective", "radial"])
+def test_compiled_projections_are_the_per_view_products(model, rng):
+    """project's R x (kernels.grouped_matvecs) against matvec_by_group's one
+    BLAS product per view: the same bits where BLAS fuses small products,
+    also for a view with a single observation (which BLAS forms by gemv),
+    else to rounding."""
+    cameras = _random_cameras(model, rng)
+    X = 100 * rng.standard_normal((N, 3))
+    view = np.repeat(np.arange(K), [N, N, N, 1, 2, 0])  # a view seen once, one twice, one never
+    point = np.concatenate([rng.permutation(N) for _ in range(3)] + [[7], [3, 9]])
+    got = cameras.project(X, view, point)
+    if model == "affine":
+        want = matvec_by_group(cameras.params[:, :6].reshape(-1, 2, 3), view, X[point]) \
+            + cameras.params[view, 6:8]
+    else:
+        q = matvec_by_group(cameras.current_rotations(), view, X[point])
+        if model == "scaled":
+            want = cameras.scale()[view, None] * q[:, :2] + cameras.params[view, 3:5]
+        else:  # the pinholes: the same q through the same numpy steps
+            want = _pinhole_images(cameras, q, view)
+    assert np.isfinite(got).any()
+    if blas_fuses_small_products():
+        assert np.array_equal(got, want, equal_nan=True)
+    else:
+        assert np.allclose(got, want, rtol=1e-12, atol=1e-9, equal_nan=True)
+
+
+def _pinhole_images(cameras, q, view):
+    p = q + cameras.params[view, 3:6]
+    n = p[:, :2] / np.where(p[:, 2:3] > 0, p[:, 2:3], np.nan)  # behind the camera: no image
+    if cameras.model == "radial":
+        k = cameras.distortion()[view]
+        r2 = np.sum(n ** 2, axis=1, keepdims=True)
+        n = n * (1 + k[:, :1] * r2 + k[:, 1:] * r2 ** 2)
+    return cameras.focal()[view, None] * n + cameras.principal_point
+
+
+def test_compiled_widest_angles_are_the_pass_over_gaps(rng):
+    """widest_angles (kernels.lowest_cosines) against the numpy pass it
+    replaced, rays of long and short tracks, as lines and not, one NaN ray:
+    the same bits where einsum sums three columns as the kernel does."""
+    rays = rng.standard_normal((3000, 3))
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    point = rng.integers(0, 120, size=3000)  # tracks of ~25 rays
+    point[:40] = 500  # and one of 40 among 600 points, most of them with none
+    rays[100] = np.nan
+    for lines in (False, True):
+        order = np.argsort(point, kind="stable")
+        p, u = point[order], rays[order]
+        lowest = np.ones(600)
+        with np.errstate(invalid="ignore"):
+            for gap in range(1, len(p)):
+                same = p[gap:] == p[:-gap]
+                if not same.any():
+                    break
+                cos = np.einsum("ti,ti->t", u[gap:][same], u[:-gap][same])
+                np.minimum.at(lowest, p[gap:][same], np.abs(cos) if lines else cos)
+            want = np.degrees(np.arccos(np.clip(lowest, -1.0, 1.0)))
+        got = widest_angles(rays, point, 600, lines)
+        if _numpy_sums_as_the_kernel_does(rng):
+            assert np.array_equal(got, want, equal_nan=True)
+        else:
+            assert np.allclose(got, want, rtol=1e-12, atol=1e-9, equal_nan=True)
+        assert np.isnan(got[point[100]]) and (got[np.bincount(point, minlength=600) < 2] == 0).all()
 
 
 @pytest.mark.parametrize("model", ["orthographic", "scaled", "perspective", "perspective-per-view"])
