@@ -252,9 +252,11 @@ def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0
 
 def off_affine_subspace_each(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0,
                              seed: int = 0, dim: int = 3) -> list:
-    """[off_affine_subspace(q, rng=np.random.default_rng(seed)) for q in qs],
-    the same bits, computed in stacks as :func:`off_affine_subspaces` does
-    (250 resections of ~550 rows each: 0.9 s one at a time)."""
+    """[off_affine_subspace(q, rng=np.random.default_rng(seed)) for q in qs]:
+    each array gets the samples that call gives it, and the arrays are tested
+    in stacks as :func:`off_affine_subspaces` does (250 resections of ~550
+    rows each: 0.9 s one at a time). A padded stack may move a distance's
+    last bit; the flags were those of the single calls on every set tried."""
     draws = []
     for q in qs:
         chosen, fractions = _affine_draws([len(q)], np.random.default_rng(seed), dim)
