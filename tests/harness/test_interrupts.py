@@ -24,4 +24,4 @@ def test_every_moment_and_every_way_to_stop(tmp_path, moment, how):
     # over in 1.8 s of that on this machine, so the signal sometimes found the
     # sweep finished (too late) or finalising (exit 130, then loky's tracker warned)
     repeats = 48 if moment == "running" else 16
-    check(trial(tmp_path, moment, random.Random(hash((moment, how)) % 1000), how=how, repeats=repeats))
+    check(trial(tmp_path, moment, random.Random(f"{moment} {how}"), how=how, repeats=repeats))
