@@ -435,6 +435,18 @@ def place_point(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps):
 
 
 @njit(cache=True, nogil=True)
+def add_view_distances(total, count, ids, D):
+    """total[ids, ids] += D and count[ids, ids] += 1 for one view's n x n
+    distances, row by row: numpy's fancy-indexed np.ix_ update of the same
+    sums took 55 ms for 5 views of 1,024 points (315 ms at 2,048)."""
+    for a in range(ids.shape[0]):
+        row, seen, Da = total[ids[a]], count[ids[a]], D[a]
+        for b in range(ids.shape[0]):
+            row[ids[b]] += Da[b]
+            seen[ids[b]] += 1
+
+
+@njit(cache=True, nogil=True)
 def row_median_residuals(D, y0, y1, cols):
     """Per row i of a view, the median over j in ``cols`` of |D_ij - e_ij|:
     each observation's misfit, one row at a time (no n x n temporary).
@@ -1329,6 +1341,8 @@ def _warm_steps(every_loss: bool) -> list:
                                   L2, 1.0, True)),
         (0.3, lambda: grouped_matvecs(np.ones((1, 2, 3)), ints([0]), np.ones((1, 3)), ints([0]))),
         (0.3, lambda: transposed_products(np.ones((1, 2, 3)), np.ones((1, 2, 3)))),
+        (0.3, lambda: add_view_distances(np.zeros((2, 2)), np.zeros((2, 2), dtype=np.int32), ints([0, 1]),
+                                         np.ones((2, 2)))),
         (0.3, lambda: row_median_residuals(np.ones((3, 3)), Y[:, 0].copy(), Y[:, 1].copy(), np.arange(3))),
         (0.3, lambda: whitened_blocks(np.ones((1, 3, 3)), np.ones((1, 3, 6)), ints([0]), ints([0]))),
     ]

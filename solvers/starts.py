@@ -33,12 +33,10 @@ def average_distances(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
     require_memory(6 * 8 * N * N, f"points={N}: the baseline's dense {N}x{N} distance matrices")
     total = np.zeros((N, N))
     count = np.zeros((N, N), dtype=np.int32)
-    for view in obs.views:
-        block = np.ix_(view.ids, view.ids)
-        total[block] += view.distance_matrix()
-        count[block] += 1
-    seen = count > 0
-    total[seen] /= count[seen]
+    for view in obs.views:  # the views' sums in their order, as np.ix_ updates made them
+        kernels.add_view_distances(total, count, np.ascontiguousarray(view.ids, dtype=np.int64),
+                                   np.ascontiguousarray(view.distance_matrix(), dtype=np.float64))
+    np.divide(total, count, out=total, where=count > 0)
     return total, count
 
 
@@ -67,12 +65,12 @@ def complete_distances(D: np.ndarray, seen: np.ndarray) -> np.ndarray:
     geo = shortest_path(graph, method="D", directed=False, indices=sources)
     out = D.copy()
     fill = out[sources]
-    missing = ~seen[sources]
-    fill[missing] = geo[missing]
+    np.copyto(fill, geo, where=~seen[sources])
     out[sources] = fill
     out = np.minimum(out, out.T)  # the geodesic from either end
     finite = np.isfinite(out)
-    out[~finite] = out[finite].max() if finite.any() else 1.0
+    if not finite.all():
+        out[~finite] = out[finite].max() if finite.any() else 1.0
     return out
 
 

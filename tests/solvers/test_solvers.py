@@ -70,6 +70,22 @@ def test_baseline_averages_only_views_that_see_both_points():
     assert D[i, j] == pytest.approx(np.mean(values))
 
 
+def test_baseline_average_is_numpys_per_view_sums_bit_for_bit():
+    # the compiled row-by-row sums must add the views in their order, as the
+    # np.ix_ updates did: the baseline's and every smart start's bits hang on it
+    _, _, obs = scene_and_observations(points=300, views=6, projections="variable",
+                                          **{"noise.type": "distance", "noise.fraction": 0.5})
+    N = obs.n_points
+    total, count = np.zeros((N, N)), np.zeros((N, N), dtype=np.int32)
+    for view in obs.views:
+        total[np.ix_(view.ids, view.ids)] += view.distance_matrix()
+        count[np.ix_(view.ids, view.ids)] += 1
+    total[count > 0] /= count[count > 0]
+    D, seen = average_distances(obs)
+    assert np.array_equal(seen, count) and (count > 1).any() and (count == 0).any()
+    assert np.array_equal(D, total)
+
+
 def test_the_authors_baseline_averages_over_all_views_with_zeros_for_unseen_pairs():
     from mpe3d.solvers.starts import authors_average
 
