@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 import time
 import traceback
 from dataclasses import replace
@@ -11,7 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+from threadpoolctl import ThreadpoolController
 
 from mpe3d import plugins
 from mpe3d.errors import MpeError
@@ -65,8 +66,21 @@ def expected_work(config: RunConfig) -> float:
 def run(config: RunConfig) -> RunResult:
     """Run ``config``; the solver only ever sees the observations."""
     check_run_memory(config)  # before sampling: refuse what cannot fit, in one line
-    with threadpool_limits(limits=BLAS_THREADS), threads.limit(BLAS_THREADS):
+    with _blas_limit(), threads.limit(BLAS_THREADS):
         return _run(config)
+
+
+_CONTROLLER: list = [None, -1]  # threadpoolctl's view of the libraries, and len(sys.modules) then
+
+
+def _blas_limit():
+    """threadpool_limits(BLAS_THREADS), without its scan of every loaded
+    library on each run (5 ms in a worker, numba's and scipy's libraries
+    loaded): the scan is made again only after an import, the only way a new
+    BLAS or OpenMP library comes into a worker."""
+    if _CONTROLLER[1] != len(sys.modules):
+        _CONTROLLER[:] = [ThreadpoolController(), len(sys.modules)]
+    return _CONTROLLER[0].limit(limits=BLAS_THREADS)
 
 
 def _run(config: RunConfig) -> RunResult:

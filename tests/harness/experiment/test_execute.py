@@ -106,3 +106,26 @@ def test_every_pipeline_name_has_a_pipeline():
         assert all(callable(getattr(pipeline(name), f, None)) for f in ("run", "title", "describe")), name
     with pytest.raises(MpeError, match="unknown pipeline 'nope'"):
         pipeline("nope")
+
+
+def test_every_run_solves_with_one_blas_thread_even_after_an_import():
+    """The BLAS limit is kept on every run, also for a library that an import
+    made between runs (the scan of the loaded libraries is cached)."""
+    from threadpoolctl import threadpool_info
+
+    seen = []
+
+    @register_solver("blas-probe", constraints={}, paper=False, summary="test")
+    def probe(observations, *, random_state=None):
+        seen.append({lib["filepath"]: lib["num_threads"] for lib in threadpool_info()})
+        return solvers.solve("factorize", observations, random_state=0)
+
+    config = make_config({"shape": "torus", "points": 40, "views": 3, "solver.name": "blas-probe"})
+    try:
+        run(config)
+        import sklearn.utils._openmp_helpers  # noqa: F401 - scikit-learn's OpenMP runtime
+        run(config)
+    finally:
+        SOLVERS.pop("blas-probe")
+    assert all(n == 1 for libraries in seen for n in libraries.values()), seen
+    assert any("gomp" in path or "omp" in path for path in seen[1]), seen[1]
