@@ -59,3 +59,12 @@ def test_bad_shapes_say_why(tmp_path, monkeypatch):
     monkeypatch.delenv("SHAPENET_DIR", raising=False)
     with pytest.raises(MpeError, match="set \\$SHAPENET_DIR"):
         load_shape("shapenet:1/2")
+
+
+def test_a_packaged_shape_is_read_once_and_handed_out_as_copies():
+    first = load_shape("chair")
+    first.apply_scale(3.0)  # a caller's change must not reach the next run
+    again = load_shape("chair")
+    assert again is not first
+    assert np.isclose(np.linalg.norm(np.ptp(again.vertices, axis=0)), 1.0)
+    assert np.array_equal(again.vertices, load_shape("chair").vertices)
