@@ -286,8 +286,10 @@ def test_compiled_median_is_numpys(rng):
     compares misfits with it, so it must be numpy's to the bit."""
     from mpe3d.solvers.kernels import median_in_place
 
-    for m in [*range(1, 30), 200, 201]:
-        for values in (rng.normal(size=m), rng.integers(0, 3, size=m).astype(float), np.ones(m)):
+    for m in [*range(1, 30), 200, 201, 620, 621, 3000]:
+        for values in (rng.normal(size=m), rng.integers(0, 3, size=m).astype(float), np.ones(m),
+                       np.where(rng.random(m) < 0.2, np.inf, np.abs(rng.normal(size=m))),
+                       np.sort(rng.normal(size=m)), np.sort(rng.normal(size=m))[::-1].copy()):
             assert median_in_place(values.copy()) == np.median(values)
 
 
