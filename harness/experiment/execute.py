@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import os
 import socket
 import sys
@@ -70,17 +71,18 @@ def run(config: RunConfig) -> RunResult:
         return _run(config)
 
 
-_CONTROLLER: list = [None, -1]  # threadpoolctl's view of the libraries, and len(sys.modules) then
-
-
 def _blas_limit():
     """threadpool_limits(BLAS_THREADS), without its scan of every loaded
     library on each run (5 ms in a worker, numba's and scipy's libraries
     loaded): the scan is made again only after an import, the only way a new
     BLAS or OpenMP library comes into a worker."""
-    if _CONTROLLER[1] != len(sys.modules):
-        _CONTROLLER[:] = [ThreadpoolController(), len(sys.modules)]
-    return _CONTROLLER[0].limit(limits=BLAS_THREADS)
+    return _libraries(len(sys.modules)).limit(limits=BLAS_THREADS)
+
+
+@functools.lru_cache(maxsize=1)
+def _libraries(modules: int) -> ThreadpoolController:
+    """threadpoolctl's view of the loaded libraries while ``modules`` modules are."""
+    return ThreadpoolController()
 
 
 def _run(config: RunConfig) -> RunResult:

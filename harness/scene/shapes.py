@@ -208,17 +208,16 @@ def load_shape(spec: str) -> trimesh.Trimesh:
                        "(pipeline=colmap renders a mesh: use a bundled shape or a mesh file)", key="shape")
     path = _mesh_path(spec)
     if path is None or spec in bundled_manifest():
-        return _packaged_shape(spec).copy()
+        return _packaged_shape(spec, path).copy()
     return normalise(_read_mesh(path, spec))
 
 
 @lru_cache(maxsize=16)
-def _packaged_shape(spec: str) -> trimesh.Trimesh:
+def _packaged_shape(spec: str, path: Path | None) -> trimesh.Trimesh:
     """A bundled or procedural shape, normalised once per process: a sweep's
     worker reads the same few meshes for hundreds of runs (5 ms a read; the
     copy the caller gets, 0.4 ms). A user's mesh file is read every time, as
     it may change between runs."""
-    path = _mesh_path(spec)
     return normalise(_procedural(spec) if path is None else _read_mesh(path, spec))
 
 
