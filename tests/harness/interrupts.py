@@ -81,7 +81,8 @@ def _journal_entries(folder: Path) -> int:
     return len(list((folder / "mpe3d-journal").glob("*.json")))
 
 
-def _wait_for(moment: str, sweep: subprocess.Popen, folder: Path, uri: str, rng) -> None:
+def _wait_for(moment: str, sweep: subprocess.Popen, folder: Path, uri: str, rng,
+              repeats: int) -> None:
     """Sleep until the trial's ``moment`` (with a random offset inside it)."""
     if moment == "planning":
         time.sleep(rng.uniform(0.5, 4.0))  # importing, opening the store, planning
@@ -93,9 +94,14 @@ def _wait_for(moment: str, sweep: subprocess.Popen, folder: Path, uri: str, rng)
             return  # the journal is being replayed (or was, fast): interrupt now
         if moment in ("running", "logging") and sum(_finished(uri, "intr").values()) >= 1:
             break
-        time.sleep(0.05 if moment == "replay" else 0.5)
+        time.sleep(0.05 if moment == "replay" else 0.25)
     if moment == "running":
-        time.sleep(rng.uniform(0.0, 1.5))
+        # The random offset is cut short once half the configs are logged: on a
+        # fast machine the whole sweep could otherwise end inside it.
+        until = time.time() + rng.uniform(0.0, 1.5)
+        while (time.time() < until and sweep.poll() is None
+               and sum(_finished(uri, "intr").values()) < repeats // 2):
+            time.sleep(0.1)
     # "logging": at once, when results arrive several a second and each is being logged
 
 
@@ -139,7 +145,7 @@ def trial(folder: Path, moment: str, rng, how: str = "group-sigint", repeats: in
     before = _finished(uri, "intr")
     sweep = _start(argv, folder)
     tree = psutil.Process(sweep.pid)
-    _wait_for(moment, sweep, folder, uri, rng)
+    _wait_for(moment, sweep, folder, uri, rng, repeats)
     outcome = Outcome(moment, how)
     if moment != "planning":  # (reading a store being made would race with its migration)
         outcome.too_late = len(_finished(uri, "intr")) == repeats  # nothing left to interrupt

@@ -38,7 +38,7 @@ def test_ui_stops_on_ctrl_c_with_its_server(tmp_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("jobs,backend", [(2, "dask"), (1, "loky")])
 def test_a_dask_cluster_and_a_single_job_stop_the_same_way(tmp_path, jobs, backend):
-    check(trial(tmp_path, "running", random.Random(jobs), how="group-sigint", repeats=16,
+    check(trial(tmp_path, "running", random.Random(jobs), how="group-sigint", repeats=48,
                 jobs=jobs, backend=backend))
 
 
