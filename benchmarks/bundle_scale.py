@@ -9,8 +9,9 @@ half of the cameras it faces (so by about 60 of 250), its keypoints with
 ``--noise`` px of Gaussian noise. Solved as ``mpe3d reconstruct --camera
 perspective`` does, from mpe3d's own start. Each line: the wall time, the
 final RMS reprojection error (px), the observations, the largest track, the
-3D error after a similarity (% of the bounding-box diagonal) and whether it
-converged. Target (issue 31): 250 cameras x 3,000 points in <= 15 s.
+3D error after a similarity (% of the bounding-box diagonal), whether it
+converged, and the machine it ran on (``benchmarks/machine.py``). Target
+(issue 31): 250 cameras x 3,000 points in <= 15 s.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import json
 import time
 
 import numpy as np
+from machine import describe
 
 from mpe3d import reconstruct
 from mpe3d.harness.scene.metrics import similarity_transform
@@ -54,6 +56,7 @@ def similarity_error(points: np.ndarray, truth: np.ndarray) -> float:
 
 def case(n_cameras: int, n_points: int, noise: float, seed: int) -> dict:
     views, X, seen = scene(n_cameras, n_points, noise, seed)
+    machine = describe()
     start = time.perf_counter()
     result = reconstruct(views, objective="reprojection", camera="perspective",
                          principal_point=(200.0, 200.0))
@@ -64,7 +67,7 @@ def case(n_cameras: int, n_points: int, noise: float, seed: int) -> dict:
             "wall_s": round(wall, 2), "rms_px": report.get("reprojection_rms_px"),
             "error_pct": round(100 * similarity_error(result.points, X[result.ids]), 5),
             "converged": not any("converge" in w for w in report.get("warnings", [])),
-            "target_s": 15}
+            "target_s": 15, "machine": machine}
 
 
 def main(argv=None) -> None:

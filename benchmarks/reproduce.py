@@ -17,6 +17,8 @@ in the workers and their summed solver time (the rest of a run's wall:
 sampling, scoring, rendering and COLMAP); for colmap runs, the summed
 phases. The worker wall of a run starts after its process has started and
 loaded the kernels once, so a worker's start is in ``runs_s`` but in no run.
+``machine`` is ``benchmarks/machine.py``'s description, measured before the
+reproduction: whether the 2 cores behave as two.
 """
 
 from __future__ import annotations
@@ -31,6 +33,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from machine import describe
 
 TARGETS_S = {"tiny": 60.0, "quick": 90.0, "full": 900.0}
 LONGEST_RUN_S = 120.0
@@ -86,6 +90,7 @@ def split(folder: Path, started: float, ended: float, jobs: int) -> dict:
 
 
 def case(scale: str, jobs: int, keep: Path | None) -> dict:
+    machine = describe()  # before the reproduction, on an idle machine
     with tempfile.TemporaryDirectory(prefix="mpe3d-reproduce-") as tmp:
         folder = Path(tmp) if keep is None else keep / scale
         folder.mkdir(parents=True, exist_ok=True)
@@ -103,7 +108,8 @@ def case(scale: str, jobs: int, keep: Path | None) -> dict:
             "target_s": TARGETS_S[scale], "within_target": wall < TARGETS_S[scale],
             "longest_run_s": where["longest_run_s"], "longest_run_target_s": LONGEST_RUN_S,
             "resume_wall_s": round(resume, 1), "resume_ran": int(rerun.group(1)), "split": where,
-            "python": platform.python_version(), "load_avg_1min": round(os.getloadavg()[0], 2)}
+            "python": platform.python_version(), "load_avg_1min": round(os.getloadavg()[0], 2),
+            "machine": machine}
 
 
 def main() -> None:

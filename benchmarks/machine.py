@@ -1,0 +1,76 @@
+"""What a timing was measured on, for a benchmark's JSON line.
+
+    python benchmarks/machine.py
+
+The targets are wall times on 2 cores, and the development machine's speed
+moved by 2x between two sessions on the same code (see
+docs/results/2026-12-06-targets-on-a-faster-machine.md): 1.4x on one core,
+2x on a two-worker reproduction. A CPU's name does not tell that apart on a
+virtual machine ("AMD EPYC"), so :func:`describe` also times a fixed piece of
+interpreter work alone and on every logical CPU at once. ``all_at_once_s``
+near ``solo_s`` means the CPUs are really as many cores. Near twice it means
+they share one, and a sweep's workers slow each other down.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import os
+import platform
+import time
+
+_WORK = 6_000_000  # about 0.3 s of the interpreter on the development machine
+
+
+def _spin() -> float:
+    """Seconds for a fixed loop of integer arithmetic (no BLAS, little memory traffic)."""
+    start = time.perf_counter()
+    total = 0
+    for i in range(_WORK):
+        total += i * i % 7
+    return time.perf_counter() - start
+
+
+def _spin_after(barrier, results) -> None:
+    barrier.wait()  # every process starts its loop at once
+    results.put(_spin())
+
+
+def at_once(count: int) -> float:
+    """The slowest of ``count`` processes that run the loop at the same time."""
+    context = multiprocessing.get_context("fork")
+    barrier, results = context.Barrier(count), context.Queue()
+    workers = [context.Process(target=_spin_after, args=(barrier, results)) for _ in range(count)]
+    for worker in workers:
+        worker.start()
+    times = [results.get() for _ in workers]
+    for worker in workers:
+        worker.join()
+    return max(times)
+
+
+def cpu_name() -> str:
+    """The CPU's model name, from /proc/cpuinfo where there is one."""
+    try:
+        with open("/proc/cpuinfo") as info:
+            for line in info:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def describe(repeats: int = 3) -> dict:
+    """The CPU's name, its logical CPUs, and the best of ``repeats`` timings of
+    the same loop alone and on every logical CPU at once."""
+    cpus = os.cpu_count() or 1
+    solo = min(at_once(1) for _ in range(repeats))
+    together = min(at_once(cpus) for _ in range(repeats))
+    return {"cpu": cpu_name(), "logical_cpus": cpus, "solo_s": round(solo, 3),
+            "all_at_once_s": round(together, 3), "parallel_share": round(solo / together, 2)}
+
+
+if __name__ == "__main__":
+    print(json.dumps({"benchmark": "machine", **describe()}))
