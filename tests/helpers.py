@@ -1,4 +1,5 @@
 """Helpers shared by the tests."""
+import importlib.util
 import os
 import signal
 import socket
@@ -20,6 +21,15 @@ SHARED = REPO.parent / "shared"
 PACKAGE_DIRS = {"mpe3d": REPO / "src" / "mpe3d", "mpe3d.harness": REPO / "harness",
                 "mpe3d.solvers": REPO / "solvers", "mpe3d.reports": REPO / "reports",
                 "mpe3d.sweeps": REPO / "sweeps"}
+
+
+def load_script(path: str, name: str):
+    """A script of the repository that is not in the package (``benchmarks/``,
+    ``scripts/``), imported as module ``name``."""
+    spec = importlib.util.spec_from_file_location(name, REPO / path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def scene_and_observations(**overrides):

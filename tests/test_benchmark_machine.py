@@ -1,17 +1,13 @@
 """benchmarks/machine.py: the description a timing is printed with."""
-import importlib.util
 import os
 
 import pytest
 
-from tests.helpers import REPO
+from tests.helpers import load_script
 
 
 def _machine():
-    spec = importlib.util.spec_from_file_location("machine_benchmark", REPO / "benchmarks" / "machine.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/machine.py", "machine_benchmark")
 
 
 def test_the_description_names_the_cpu_and_times_the_loop_both_ways():

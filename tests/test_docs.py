@@ -1,15 +1,11 @@
 """The documentation: a short README, references that match the code, links that resolve."""
-import importlib.util
 import re
 
-from tests.helpers import REPO
+from tests.helpers import REPO, load_script
 
 
 def _reference_docs():
-    spec = importlib.util.spec_from_file_location("reference_docs", REPO / "scripts" / "reference_docs.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("scripts/reference_docs.py", "reference_docs")
 
 
 def test_the_readme_is_a_front_door():

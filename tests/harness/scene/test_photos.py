@@ -1,17 +1,13 @@
 """The photo renderer against the first one (benchmarks/render.py's reference): same bytes."""
-import importlib.util
 
 import numpy as np
 
 from mpe3d.harness.scene import photos, shapes
-from tests.helpers import REPO
+from tests.helpers import load_script
 
 
 def _reference():
-    spec = importlib.util.spec_from_file_location("render_benchmark", REPO / "benchmarks" / "render.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/render.py", "render_benchmark")
 
 
 def test_compiled_value_noise_is_the_array_version_to_the_bit(rng):
