@@ -117,9 +117,13 @@ def test_journal_round_trip_and_owners(tmp_path):
 
 # -- real processes: kill -9, two at once, a server outage ----------------------------
 
+# About 2 s a run (SGD's iterations, no tolerance to stop them), so that a run is
+# still computing when a test kills the sweep or hangs its server. At 60
+# iterations a run took 0.16 s on a faster machine, and the in-flight run
+# these tests are about had sometimes been logged already.
 SLOW = """
 name: {name}
-base: {{shape: torus, points: 200, views: 4, solver: {{name: sgd, max_iter: 60, tol: 1.0e-15}}}}
+base: {{shape: torus, points: 200, views: 4, solver: {{name: sgd, max_iter: 20000, tol: 0.0}}}}
 repeats: {repeats}
 """
 
@@ -208,7 +212,8 @@ def test_a_real_server_and_an_outage_that_loses_nothing(tmp_path, capsys, monkey
         sweep = subprocess.Popen([*mpe3d_command(), "sweep", str(path), "--jobs", "1", "--tracking-uri",
                                   uri, "--quiet"], cwd=tmp_path,
                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        poll(lambda: sweep.poll() is None and logged(uri, "outage") >= 1)
+        poll(lambda: sweep.poll() is None and logged(uri, "outage") >= 1
+             and logged(uri, "outage", "RUNNING") >= 1)  # the next run claimed: in flight
         before = logged(uri, "outage")
         os.killpg(first.pid, signal.SIGSTOP)
         hung_at = time.time()
