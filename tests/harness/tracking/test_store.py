@@ -251,8 +251,9 @@ def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
 @pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_a_killed_sweep_keeps_its_runs_and_resumes(tmp_path):
     path = tmp_path / "slow.yaml"
-    path.write_text("name: slow\nbase: {shape: torus, points: 400, views: 4,\n"
-                    "       solver: {name: sgd, max_iter: 300, tol: 1e-15}}\nrepeats: 4\n")
+    # about 2 s a run, so that runs are left to kill (300 iterations were 0.2 s a run)
+    path.write_text("name: slow\nbase: {shape: torus, points: 200, views: 4,\n"
+                    "       solver: {name: sgd, max_iter: 20000, tol: 0.0}}\nrepeats: 4\n")
     uri = f"sqlite:///{tmp_path}/t.db"
     from tests.helpers import mpe3d_command, new_store
 
