@@ -10,6 +10,7 @@ triangulation per method. A last line gives the 3DMPE row (4 projections,
 known correspondences, Table allmetrics' protocol) by the paper's SGD and by
 refine, beside the paper's numbers (COLMAP 250 images: CD 23.1, EMD 19.7;
 3DMPE 4 projections: CD 5.79, EMD 5.09).
+Each photo line also says what machine it ran on (``benchmarks/machine.py``).
 """
 
 from __future__ import annotations
@@ -17,6 +18,8 @@ from __future__ import annotations
 import argparse
 import json
 import time
+
+from machine import describe
 
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.experiment.execute import run
@@ -37,10 +40,11 @@ def _round(value):
 def colmap_line(count: int, shape: str, seed: int) -> dict:
     config = make_config({"pipeline": "colmap", "images.count": count, "shape": shape,
                           "points": 2048, "seed": seed})
+    machine = describe()
     start = time.perf_counter()
     result = run(config)
     line = {"benchmark": "colmap", "photos": count, "shape": shape, "seed": seed,
-            "wall_s": round(time.perf_counter() - start, 2)}
+            "wall_s": round(time.perf_counter() - start, 2), "machine": machine}
     line.update({k: _round(result.metrics[k]) for k in KEPT if k in result.metrics})
     line["paper"] = PAPER["colmap_250"]
     return line
