@@ -44,7 +44,7 @@ COLMAP_PHASES = ("render_s", "extract_s", "match_s", "map_s", "tracks_bundle_s",
 
 def mpe3d() -> list[str]:
     script = Path(sys.executable).parent / "mpe3d"
-    return [str(script)] if script.exists() else [sys.executable, "-m", "mpe3d.harness.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "mpe3d.cli"]
 
 
 def reproduce(folder: Path, scale: str, jobs: int, out: str) -> tuple[float, str]:

@@ -73,7 +73,7 @@ def first(*args, **kwargs):
         print(f"FIRST_SOLVE {time.time():.6f}", file=sys.stderr, flush=True)
     return solve(*args, **kwargs)
 solvers.solve = first
-from mpe3d.harness.cli import console
+from mpe3d.cli import console
 sys.argv = ["mpe3d", *sys.argv[1:]]
 raise SystemExit(console())
 """

@@ -215,3 +215,30 @@ def _accepts(only, process) -> bool:
         return bool(only(process))
     except psutil.Error:
         return False
+
+
+def stop_group(process, grace_s: float = 2.0) -> None:
+    """SIGTERM to the whole process group that ``process`` (a ``Popen`` started
+    with ``start_new_session=True``) leads, then SIGKILL to whatever outlives
+    ``grace_s``: a server's forked workers go with it."""
+    import subprocess
+    import time
+
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(process.pid, sig)
+        except ProcessLookupError:
+            break
+        try:
+            process.wait(grace_s)
+        except subprocess.TimeoutExpired:
+            continue
+        deadline = time.monotonic() + grace_s  # the leader is gone; its workers may linger a moment
+        while time.monotonic() < deadline:
+            try:
+                os.killpg(process.pid, 0)
+            except ProcessLookupError:
+                return
+            time.sleep(0.1)
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        process.wait(grace_s)  # reap the leader

@@ -66,7 +66,7 @@ def solvers_page() -> str:
 
 
 def cli_page() -> str:
-    from mpe3d.harness.cli import build_parser
+    from mpe3d.cli import build_parser
 
     parser = build_parser()
     lines = ["# Command line", "", "```text", parser.format_help().rstrip(), "```", ""]

@@ -1,7 +1,6 @@
 """Helpers shared by the tests."""
 import importlib.util
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -14,6 +13,7 @@ import numpy as np
 
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
+from mpe3d.harness.shutdown import stop_group
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared"
@@ -43,9 +43,9 @@ def scene_and_observations(**overrides):
 
 def mpe3d_command() -> list[str]:
     """The installed ``mpe3d`` console script, as a user runs it (falls back to
-    ``python -m mpe3d.harness.cli`` when the package is not installed)."""
+    ``python -m mpe3d.cli`` when the package is not installed)."""
     script = Path(sys.executable).parent / "mpe3d"
-    return [str(script)] if script.exists() else [sys.executable, "-m", "mpe3d.harness.cli"]
+    return [str(script)] if script.exists() else [sys.executable, "-m", "mpe3d.cli"]
 
 
 def new_store(uri: str) -> None:
@@ -110,12 +110,8 @@ def wait_for(url, process, seconds=120):
 
 
 def stop(process):
-    os.killpg(process.pid, signal.SIGTERM)  # the server's workers are its children
-    try:
-        process.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        process.wait()
+    """Stop a server started in its own session, its workers with it."""
+    stop_group(process, grace_s=20)
 
 
 def short_track_set(folder, seed: int = 0, n_points: int = 544, n_views: int = 5, noise: float = 0.3):

@@ -28,8 +28,9 @@ def tree(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("tree")
     package = root / "mpe3d"
     package.mkdir()
-    for path in PACKAGE_DIRS["mpe3d"].glob("*.py"):
-        (package / path.name).symlink_to(path)
+    for path in PACKAGE_DIRS["mpe3d"].iterdir():
+        if path.suffix == ".py" or (path / "__init__.py").is_file():
+            (package / path.name).symlink_to(path, target_is_directory=path.is_dir())
     for name, folder in PACKAGE_DIRS.items():
         if name != "mpe3d":
             (package / name.split(".")[1]).symlink_to(folder, target_is_directory=True)
@@ -41,7 +42,7 @@ def _modules() -> dict[str, Path]:
     out = {}
     for package, folder in PACKAGE_DIRS.items():
         for path in folder.rglob("*.py"):
-            if "__pycache__" in path.parts or (package == "mpe3d" and path.parent != folder):
+            if "__pycache__" in path.parts:
                 continue
             parts = path.relative_to(folder).with_suffix("").parts
             name = ".".join((package, *parts))

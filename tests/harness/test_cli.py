@@ -121,7 +121,7 @@ def test_unwritable_out_dir_is_one_line(tmp_path):
 def test_every_option_of_every_subcommand_has_a_one_line_help():
     import argparse
 
-    from mpe3d.harness.cli import build_parser
+    from mpe3d.cli import build_parser
 
     (commands,) = [a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)]
     for name, parser in commands.choices.items():
@@ -137,7 +137,7 @@ def test_every_option_of_every_subcommand_has_a_one_line_help():
 def test_help_imports_nothing_heavy():
     """`mpe3d --help` and `mpe3d run --help` answer from the light modules: the
     command line may not import numpy, scikit-learn, MLflow or numba to parse."""
-    probe = ("import sys; from mpe3d.harness import cli; cli.build_parser(); "
+    probe = ("import sys; from mpe3d import cli; cli.build_parser(); "
              "print(sorted(m for m in ('numpy', 'sklearn', 'mlflow', 'numba', 'pandas', 'scipy') "
              "if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)

@@ -71,7 +71,7 @@ def test_workers_are_born_with_ctrl_c_blocked(tmp_path):
 
     import psutil
 
-    from mpe3d.harness.cli import main
+    from mpe3d.cli import main
 
     path = tmp_path / "s.yaml"
     path.write_text("name: s\nbase: {shape: torus, points: 48, solver: baseline}\nrepeats: 2\n")

@@ -7,7 +7,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mpe3d.harness.cli import main
+from mpe3d.cli import main
 from mpe3d.harness.tracking.store import Tracker
 from mpe3d.reports.load import published
 from mpe3d.sweeps import paper_sweeps

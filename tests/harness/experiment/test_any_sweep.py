@@ -5,7 +5,7 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from mpe3d import load_sweep
-from mpe3d.harness.cli import main
+from mpe3d.cli import main
 from tests.helpers import run_cli
 
 MIXED = """\

@@ -5,8 +5,8 @@ import textwrap
 
 import pytest
 
+from mpe3d.cli import main
 from mpe3d.errors import MpeError
-from mpe3d.harness.cli import main
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.experiment.sweep import load_sweep
 from tests.helpers import REPO, SHARED

@@ -82,7 +82,7 @@ def test_every_module_a_run_loads_is_in_the_code_identity():
             "mpe3d.harness.experiment.colmap_pipeline"} <= set(seen["loaded"])
     assert set(seen["loaded"]) <= set(seen["fingerprinted"]), \
         set(seen["loaded"]) - set(seen["fingerprinted"])
-    for away in ("mpe3d.harness.cli", "mpe3d.harness.tracking.store", "mpe3d.reports", "mpe3d.sweeps"):
+    for away in ("mpe3d.cli", "mpe3d.harness.tracking.store", "mpe3d.reports", "mpe3d.sweeps"):
         assert away not in seen["fingerprinted"]
 
 
@@ -113,7 +113,7 @@ def test_editing_a_module_on_a_runs_path_changes_the_code_identity(tmp_path, mon
     before = identity.code_identity()
     for name, edit in (("mpe3d.harness.userdata.reconstruct", "\nEDITED = 1\n"),
                        ("mpe3d.harness.userdata.formats", "\nEDITED = 1\n"),
-                       ("mpe3d.harness.cli", None)):  # not on a run's path: no change
+                       ("mpe3d.cli.main", None)):  # not on a run's path: no change
         original = identity.module_file(name)
         copy = tmp_path / original.name
         copy.write_text(original.read_text() + (edit or "\ndef extra():\n    return 1\n"))
@@ -180,7 +180,7 @@ def test_a_code_change_is_detected_and_recomputed(tmp_path):
     first = run_cli("sweep", str(path), "--jobs", "1", "--tracking-uri", uri, "--no-artifacts")
     assert first.returncode == 0 and "2 finished" in first.stdout, first.stderr
     source, site = copy_checkout(tmp_path / "src"), tmp_path / "site"
-    command = [sys.executable, "-m", "mpe3d.harness.cli", "sweep", str(path), "--jobs", "1",
+    command = [sys.executable, "-m", "mpe3d.cli", "sweep", str(path), "--jobs", "1",
                "--tracking-uri", uri, "--no-artifacts"]
     env = {**os.environ, **install(source, site)}  # once: the edits below go to the installed copy
 

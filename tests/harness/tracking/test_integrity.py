@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from mlflow.tracking import MlflowClient
 
-from mpe3d.harness.cli import main
+from mpe3d.cli import main
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.experiment.execute import failed_record, run_record
 from mpe3d.harness.experiment.sweep import load_sweep

@@ -16,7 +16,7 @@ import psutil
 import pytest
 from mlflow.tracking import MlflowClient
 
-from mpe3d.harness.cli import main
+from mpe3d.cli import main
 from mpe3d.harness.experiment.result import METRIC_KEYS
 from mpe3d.harness.experiment.sweep import load_sweep
 from mpe3d.harness.tracking.store import CHART_STEPS, chart_steps
@@ -379,8 +379,8 @@ def test_a_new_store_is_a_copy_of_the_one_mlflow_makes_and_a_bad_template_is_mad
 def test_runs_of_the_papers_full_sweeps_fit_a_120_column_terminal(monkeypatch):
     """Every config of each paper sweep at full scale, with metrics as wide as
     they print (an exact solver's 1e-14, a slow run's seconds), and a failure."""
-    from mpe3d.harness.cli import print_runs, runs_table
     from mpe3d.harness.experiment.sweep import load_sweep
+    from mpe3d.reports.runs_table import format_runs, runs_table
     from mpe3d.sweeps import paper_sweeps
 
     monkeypatch.setenv("COLUMNS", "120")
@@ -395,11 +395,7 @@ def test_runs_of_the_papers_full_sweeps_fit_a_120_column_terminal(monkeypatch):
                              cd_x100=10.0 ** rng.uniform(-15, 2, n), emd_x100=10.0 ** rng.uniform(-15, 2, n),
                              roa=10.0 ** rng.uniform(-17, 0, n), runtime_s=10.0 ** rng.uniform(-4, 3, n))
         frame.loc[0, ["status", "error"]] = ["FAILED", "MpeError: " + "a long reason " * 20]
-        buffer = io.StringIO()
-        from contextlib import redirect_stdout
-        with redirect_stdout(buffer):
-            print_runs(runs_table(frame, all_columns=False), "text")
-        lines = buffer.getvalue().splitlines()
+        lines = format_runs(runs_table(frame, all_columns=False), "text").splitlines()
         assert max(map(len, lines)) <= 120, (sweep.name, lines[0])
         assert lines[-1].startswith("FAILED ") and "MpeError: a long reason" in lines[-1]
         assert len(lines) == len(frame) + 2  # the header, a row per run, the failure below

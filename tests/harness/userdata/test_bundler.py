@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from mpe3d import reconstruct
+from mpe3d.cli import main
 from mpe3d.errors import MpeError
-from mpe3d.harness.cli import main
 from mpe3d.harness.userdata.bundler import read_bundle_file, write_bal, write_bundler
 from mpe3d.harness.userdata.reconstruct import prepare
 from mpe3d.solvers.sfm.cameras import exp_so3, radial_cameras

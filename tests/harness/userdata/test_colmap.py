@@ -3,8 +3,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from mpe3d.cli import main
 from mpe3d.errors import MpeError
-from mpe3d.harness.cli import main
 from mpe3d.harness.experiment import colmap_sfm
 from mpe3d.harness.experiment.colmap_pipeline import model_misfit, seen_in_photos
 from mpe3d.harness.scene import metrics, photos, shapes

@@ -6,7 +6,7 @@ import zipfile
 import numpy as np
 import pytest
 
-from mpe3d.harness.cli import main
+from mpe3d.cli import main
 from mpe3d.harness.files import write_together
 
 GOOD_XY = [[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]

@@ -6,8 +6,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
+from mpe3d.cli import main
 from mpe3d.errors import MpeError
-from mpe3d.harness.cli import main
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.cameras import exp_so3

@@ -6,8 +6,8 @@ import pandas as pd
 import pytest
 import trimesh
 
+from mpe3d.cli import main
 from mpe3d.errors import MpeError
-from mpe3d.harness.cli import main
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.files import atomic_write
 from mpe3d.harness.scene.metrics import roa

@@ -1,0 +1,129 @@
+"""``mpe3d reconstruct``: your own keypoints or distance matrices in, a 3D
+cloud (and a report, a COLMAP model or a Bundler/BAL file) out."""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+from mpe3d.errors import MpeError
+
+
+def _pair(text: str):
+    """``X,Y`` as two numbers, for --missing and --principal-point."""
+    try:
+        x, y = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected X,Y (two numbers), got {text!r}") from None
+    return x, y
+
+
+def add_parser(sub) -> None:
+    rec = sub.add_parser("reconstruct", help="rebuild a 3D cloud from your own keypoints or "
+                         "distance matrices", description="Read matched 2D keypoints (CSV view,point,x,y; "
+                         "NPZ; JSON; or a folder of .npz per view) or per-view distance matrices, check "
+                         "them, and write the 3D cloud with each point's id.")
+    rec.add_argument("input", metavar="INPUT", help="a .csv, .npz or .json file, a folder of .npz, "
+                     "a COLMAP model folder, a Bundler .out or BAL problem file, or a VGG "
+                     "nview-corners table (its .corners files beside it)")
+    rec.add_argument("--out", required=True, metavar="CLOUD",
+                     help="output: .ply, .csv or .npy (the cloud, with ids); a folder (a COLMAP "
+                     "model); or .out or .bal (Bundler or BAL: pinhole cameras f, k1, k2, the "
+                     "points and the kept keypoints, centred on the principal point)")
+    rec.add_argument("--projections", metavar="FILE",
+                     help="known cameras (.npy or .json, K matrices: 2x3 or 3x3 orthographic, "
+                     "or 3x4 pinhole): the fixed setting")
+    rec.add_argument("--objective", choices=("reprojection", "stress"),
+                     help="reprojection (bundle adjustment; the default for keypoints) or "
+                     "stress (paper Eq. 1; the default and only choice for distance matrices)")
+    rec.add_argument("--camera", default="auto",
+                     choices=("auto", "orthographic", "scaled", "perspective", "radial"),
+                     help="the camera model for reprojection (default auto: the pinhole camera "
+                     "when it fits clearly better than weak perspective; radial: the pinhole "
+                     "with radial distortion k1, k2, Bundler's and BAL's camera)")
+    rec.add_argument("--start", choices=("file", "own"),
+                     help="where bundle adjustment starts: the input's cameras and points (a "
+                     "Bundler or BAL file; the default when it has them) or mpe3d's own start")
+    rec.add_argument("--principal-point", type=_pair, metavar="X,Y",
+                     help="the pinhole camera's principal point in pixels, usually the image "
+                     "centre (default: the centre of the keypoints)")
+    rec.add_argument("--missing", type=_pair, metavar="X,Y",
+                     help="drop observations at exactly X,Y (e.g. -1,-1: a tracker's 'not seen')")
+    rec.add_argument("--outlier-threshold", type=float, default=20.0, metavar="SIGMAS",
+                     help="reprojection: drop observations beyond this many robust sigmas as "
+                     "wrong matches (default 20; inf keeps all, and turns refine's rejection "
+                     "rounds off for the stress)")
+    rec.add_argument("--solver", default="refine", help="stress solver: refine (default), "
+                     "factorize or sgd")
+    rec.add_argument("--loss", default="l2", choices=("l2", "huber", "soft_l1", "cauchy"),
+                     help="l2 (default), or a robust loss: huber, soft_l1 (cauchy: reprojection only)")
+    rec.add_argument("--report", metavar="FILE.json", help="write per-view residuals (pixels "
+                     "for reprojection), cameras, dropped and unplaced ids and runtime as JSON")
+    rec.add_argument("--seed", type=int, default=0, help="random state (default 0)")
+    rec.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
+                     help="load a plug-in file (a stress solver for --solver) first; repeatable")
+    rec.set_defaults(func=cmd_reconstruct)
+
+
+def cmd_reconstruct(args) -> int:
+    from mpe3d.harness.userdata import bundler
+    from mpe3d.harness.userdata.formats import OUTPUT_FORMATS, check_ids_fit, check_output, write_result
+    from mpe3d.harness.userdata.reconstruct import prepare, solve_problem
+
+    if args.seed < 0:
+        raise MpeError(f"--seed: expected an integer >= 0, got {args.seed}")
+    model = _model_out(args.out)  # every output path before any work, not after it
+    out = model / "points3D.ply" if model else \
+        check_output(args.out, formats=OUTPUT_FORMATS + bundler.BUNDLE_OUTPUTS)
+    solution = out.suffix.lower() in bundler.BUNDLE_OUTPUTS
+    report = check_output(args.report, "--report", (".json",)) if args.report else None
+    if report is not None and report.resolve() == out.resolve():
+        raise MpeError(f"--report {report}: the same file as --out")
+    problem = prepare(args.input, projections=args.projections, solver=args.solver,
+                      loss=args.loss, random_state=args.seed, objective=args.objective,
+                      camera=args.camera, missing=args.missing,
+                      outlier_threshold=args.outlier_threshold,
+                      principal_point=args.principal_point, start=args.start)
+    check_ids_fit(out, problem.ids)
+    if solution:
+        bundler.check_solution_out(out, problem)
+    result = solve_problem(problem)
+    extra = {"input": str(args.input), "output": str(model or out)}
+    if model:
+        from mpe3d.harness.userdata.colmap_model import write_model_folder
+
+        result.warnings.extend(write_model_folder(model, problem, result))
+    writer = bundler.solution_writer(out, problem, result) if solution else None
+    write_result(out, result, report, extra, writer)
+    print(_summary(result.report))
+    for message in result.warnings:
+        print(f"mpe3d: warning: {message}", file=sys.stderr)
+    print(f"wrote {model or out}" + (f" and {report}" if report else ""))
+    return 0
+
+
+def _model_out(text: str) -> Path | None:
+    """The folder of a COLMAP model when ``--out`` names one (no file suffix),
+    checked as :func:`check_output` checks a file."""
+    from mpe3d.harness.userdata.colmap_model import check_model_out
+
+    path = Path(text)
+    if text.endswith(("/", os.sep)) or not path.suffix:
+        return check_model_out(path)
+    return None
+
+
+def _summary(summary: dict) -> str:
+    where = f"{summary['points']} points from {summary['views']} views ({summary['setting']} "
+    if summary["objective"] == "stress":
+        worst = max(summary["rms_residual_per_view"])
+        return (where + f"projections, {summary['solver']}): stress {summary['stress']:.3g}, "
+                f"worst view RMS residual {worst:.3g}, {summary['unplaced']['count']} unplaced, "
+                f"{summary['runtime_s']:.2f} s")
+    worst = max(v for v in summary["rms_px_per_view"] if v is not None)
+    return (where + f"cameras, {summary['camera']} camera, bundle adjustment): reprojection RMS "
+            f"{summary['reprojection_rms_px']:.3g} px (worst view {worst:.3g} px), "
+            f"{summary['dropped']['count']} wrong matches dropped, "
+            f"{summary['unplaced']['count']} unplaced, {summary['runtime_s']:.2f} s")
