@@ -43,7 +43,7 @@ from scipy.spatial.transform import Rotation
 from mpe3d.harness.tracking.identity import code_identity
 from mpe3d.harness.userdata.bundler import write_bal
 from mpe3d.harness.userdata.reconstruct import prepare, solve_problem
-from mpe3d.solvers import kernels
+from mpe3d.solvers import warmup
 
 
 def synthetic(path: Path, n_cameras: int, n_points: int, rng) -> None:
@@ -146,7 +146,7 @@ def scipy_cookbook(path, ftol):
 def ours(path):
     problem = prepare(path, outlier_threshold=np.inf)  # reading, as scipy's read is not timed
     code_identity()  # the report's code identity: once per process, no part of a solve
-    kernels.warm()  # the compiled kernels loaded (or compiled) once per process, as the harness does
+    warmup.warm()  # the compiled kernels loaded (or compiled) once per process, as the harness does
     start = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -69,9 +69,9 @@ def measure(name: str, obs, scene, seed: int, memory: bool) -> dict:
 
 
 def main(argv=None) -> int:
-    from mpe3d.solvers import kernels
+    from mpe3d.solvers import warmup
 
-    kernels.warm()  # once per process, as a sweep's worker does: no case pays it
+    warmup.warm()  # once per process, as a sweep's worker does: no case pays it
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, nargs="+", default=[512, 2048, 8192])
     parser.add_argument("--views", type=int, nargs="+", default=[4, 5, 8])

@@ -101,9 +101,9 @@ def vector_instructions() -> dict:
     and a small change to the loop can make the compiler leave it scalar."""
     from numba import njit
 
-    from mpe3d.solvers import kernels
+    from mpe3d.solvers import kernels, warmup
 
-    kernels.warm()
+    warmup.warm()
     out = {}
     for loss, cached in zip(STRESS_LOSSES, kernels.DENSE_KERNELS):
         fresh = njit(nogil=True, fastmath=kernels.FASTMATH_FLAGS)(cached.py_func)  # numba shows no cached code

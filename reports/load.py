@@ -57,14 +57,14 @@ def runs(tracker, experiment: str, hashes=None) -> pd.DataFrame:
             frame[key] = column.where(column.notna(), spec.default)
             if isinstance(spec.default, (int, float)):
                 frame[key] = pd.to_numeric(frame[key])
+    from mpe3d.harness.experiment.execute import pipeline
+
     variants = frame["solver.method"] if "solver.method" in frame else [None] * len(frame)
     frame["method"] = [method_label(s, v) for s, v in zip(frame["solver.name"], variants)]
-    frame.loc[frame["pipeline"] == "colmap", "method"] = "COLMAP"  # the photos' pipeline: no solver
-    tracks = frame["pipeline"] == "tracks"
-    if tracks.any():  # real keypoints: bundle adjustment by camera model, or a stress solver
-        from mpe3d.harness.experiment.tracks_pipeline import method
-
-        frame.loc[tracks, "method"] = [method(row) for _, row in frame[tracks].iterrows()]
+    for name in frame["pipeline"].unique():  # a pipeline may name its runs otherwise (COLMAP, bundle)
+        rows = frame["pipeline"] == name
+        named = [pipeline(name).method(row) for row in frame[rows].to_dict("records")]
+        frame.loc[rows, "method"] = [m if m is not None else old for m, old in zip(named, frame.loc[rows, "method"])]
     return frame.reset_index(drop=True)
 
 

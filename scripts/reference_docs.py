@@ -32,7 +32,9 @@ def config_page() -> str:
              "| key | default | meaning | values |", "|---|---|---|---|"]
     for key, spec in KEYS.items():
         default = "null" if spec.default is None else spec.default
-        values = ", ".join(map(str, spec.choices)) if spec.choices else spec.kind.__name__
+        values = ", ".join(map(str, spec.choices)) if spec.choices else \
+            (str(spec.rule) if spec.rule is not None else spec.kind.__name__)
+        values += " or null" if spec.optional else ""
         lines.append(f"| `{key}` | `{_cell(default)}` | {_cell(spec.doc)} | {_cell(values)} |")
     if ALIASES:
         lines += ["", "Other spellings that are accepted:", ""]

@@ -25,6 +25,7 @@ from scipy.spatial.distance import cdist
 
 from mpe3d import plugins
 from mpe3d.errors import MpeError, coerce, suggest
+from mpe3d.options import PROJECTIONS, Choice, Interval
 from mpe3d.plugins import Origin
 from mpe3d.solvers.linalg import classical_mds
 
@@ -105,48 +106,7 @@ class Reconstruction:
     info: dict[str, Any] = field(default_factory=dict)
 
 
-@dataclass(frozen=True)
-class Interval:
-    """An option's allowed range, as in scikit-learn's ``_parameter_constraints``:
-    ``kind`` (int or float) between ``low`` and ``high`` (``None``: unbounded),
-    each end included or not (``closed``: "both", "left", "right", "neither")."""
-
-    kind: type
-    low: float | None
-    high: float | None
-    closed: str = "both"
-
-    def __contains__(self, value) -> bool:
-        left = self.closed in ("both", "left")
-        right = self.closed in ("both", "right")
-        return ((self.low is None or value > self.low or (left and value == self.low))
-                and (self.high is None or value < self.high or (right and value == self.high)))
-
-    def __str__(self) -> str:
-        noun = "an integer" if self.kind is int else "a number"
-        if self.high is None:
-            return f"{noun} {'>=' if self.closed in ('both', 'left') else '>'} {self.low:g}"
-        if self.low is None:
-            return f"{noun} {'<=' if self.closed in ('both', 'right') else '<'} {self.high:g}"
-        left = "[" if self.closed in ("both", "left") else "("
-        right = "]" if self.closed in ("both", "right") else ")"
-        return f"{noun} in {left}{self.low:g}, {self.high:g}{right}"
-
-
-@dataclass(frozen=True)
-class Choice:
-    """An option that takes one of a few names."""
-
-    names: tuple[str, ...]
-
-    def __contains__(self, value) -> bool:
-        return value in self.names
-
-    def __str__(self) -> str:
-        return "one of " + ", ".join(self.names)
-
-
-SETTINGS = ("fixed", "variable")  # given projections P^k, or estimated ones
+SETTINGS = tuple(PROJECTIONS)  # given projections P^k, or estimated ones
 
 
 @dataclass(frozen=True)

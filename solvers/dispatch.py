@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from mpe3d.errors import MpeError
+from mpe3d.options import INITS
 from mpe3d.solvers.base import (
     Observations,
     Reconstruction,
@@ -23,8 +24,6 @@ from mpe3d.solvers.base import (
     get_solver,
     validate_options,
 )
-
-INITS = ("smart", "random")
 
 
 def solve(name: str, observations: Observations, *, init: str = "smart",
@@ -62,16 +61,15 @@ def solve(name: str, observations: Observations, *, init: str = "smart",
         raise MpeError(f"solver '{name}' solves only the {' and '.join(spec.settings)} setting, "
                        f"not the {setting} one", key="projections")
     if spec.uses_init:
-        if init not in INITS:
-            raise MpeError(f"init: expected one of {', '.join(INITS)}, got {init!r}", key="init")
+        INITS.check("init", init)
         options["init"] = init
     rng = np.random.default_rng(random_state)
     for module in spec.imports:  # outside the timed region
         importlib.import_module(module)
-    from mpe3d.solvers import kernels
+    from mpe3d.solvers import warmup
 
     # compiled, or loaded from numba's disk cache, before the clock too
-    kernels.warm(options.get("loss", "l2"))
+    warmup.warm(options.get("loss", "l2"))
     start = time.perf_counter()
     result = spec.func(observations, random_state=rng, **options)
     runtime = time.perf_counter() - start

@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.optimize import least_squares
 
-from mpe3d.solvers import kernels
+from mpe3d.solvers import point_kernels
 from mpe3d.solvers.base import Interval, Observations, Reconstruction, register_solver
 from mpe3d.solvers.degenerate import check_geometry, warn
 from mpe3d.solvers.linalg import (
@@ -229,13 +229,13 @@ class AffineFit(NamedTuple):
 
 def affine_als(view, point, z, N: int, K: int, max_iter: int, tol: float) -> AffineFit:
     """z_t ~ L_k^T x_i + t_k with missing data, by alternating least squares
-    (one compiled pass a sweep, :func:`kernels.affine_als`), from
+    (one compiled pass a sweep, :func:`point_kernels.affine_als`), from
     :func:`_affine_start`, for the observations t = (view[t], point[t], z[t])
     of N points in K views."""
     X = _affine_start(view, point, z, N, K)
     # A point seen once says nothing about the views: it fits any of them.
     informative = np.bincount(point, minlength=N)[point] >= 2
-    X, L, rms, sweeps = kernels.affine_als(
+    X, L, rms, sweeps = point_kernels.affine_als(
         np.ascontiguousarray(view, dtype=np.int64), np.ascontiguousarray(point, dtype=np.int64),
         np.ascontiguousarray(z, dtype=np.float64), np.ascontiguousarray(X, dtype=np.float64),
         informative, K, max_iter, tol, 1e-14 * _scale(z))

@@ -13,10 +13,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from mpe3d.solvers import kernels, lbfgs
+from mpe3d.options import STRESS_LOSSES
+from mpe3d.solvers import lbfgs, point_kernels
 from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register_solver
 from mpe3d.solvers.factorize import solve_factorize
-from mpe3d.solvers.stress import STRESS_LOSSES, Stress
+from mpe3d.solvers.stress import Stress
 
 # Huber's tuning constant: 95% efficiency under Gaussian residuals.
 _HUBER_K = 1.345
@@ -115,7 +116,7 @@ def rotation_unit(X: np.ndarray) -> float:
 
 
 _PARAMETER_CONSTRAINTS = {
-    "loss": Choice(STRESS_LOSSES),
+    "loss": STRESS_LOSSES,
     "max_iter": Interval(int, 0, None),
     "tol": Interval(float, 0.0, None),
     "outliers": Choice(OUTLIERS),
@@ -266,7 +267,7 @@ def _place_weak(stress, X, P, weak, rejected, total) -> np.ndarray:
             continue
         # one compiled call per point: the Python around the scouting of each pair
         # of its views was half of this function's time
-        X[i] = kernels.place_point(np.asarray(X[i], dtype=np.float64), *_stack(rows), float(line),
+        X[i] = point_kernels.place_point(np.asarray(X[i], dtype=np.float64), *_stack(rows), float(line),
                                    ROW_SIGMAS, _SCOUTS, _REWEIGHTS, _PLACING_STEPS)
     return X
 

@@ -15,7 +15,7 @@ import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import shortest_path
 
-from mpe3d.solvers import kernels
+from mpe3d.solvers import kernels, point_kernels
 from mpe3d.solvers.base import Observations, require_memory
 from mpe3d.solvers.linalg import classical_mds
 from mpe3d.solvers.stress import project_rows
@@ -34,7 +34,7 @@ def average_distances(obs: Observations) -> tuple[np.ndarray, np.ndarray]:
     total = np.zeros((N, N))
     count = np.zeros((N, N), dtype=np.int32)
     for view in obs.views:  # the views' sums in their order, as np.ix_ updates made them
-        kernels.add_view_distances(total, count, np.ascontiguousarray(view.ids, dtype=np.int64),
+        point_kernels.add_view_distances(total, count, np.ascontiguousarray(view.ids, dtype=np.int64),
                                    np.ascontiguousarray(view.distance_matrix(), dtype=np.float64))
     np.divide(total, count, out=total, where=count > 0)
     return total, count

@@ -27,7 +27,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from mpe3d.solvers import kernels
+from mpe3d.options import STRESS_LOSSES
+from mpe3d.solvers import kernels, point_kernels
 from mpe3d.solvers.base import Observations
 
 # Rows per block: keeps each temporary at about 4M float64 entries (32 MB).
@@ -82,7 +83,6 @@ def _view_inputs(observations: Observations) -> list:
     return cache[DENSE_LIMIT]
 
 
-STRESS_LOSSES = tuple(kernels.LOSS_CODES)  # the kernels' loss names, in the order of their codes
 KERNELS = ("compiled", "numpy")
 
 
@@ -218,7 +218,7 @@ class Stress:
             Y = X[ids] @ P[k].T
             cols = np.flatnonzero(among[k])
             if self.kernel == "compiled":
-                out.append(kernels.row_median_residuals(self.D[k], np.ascontiguousarray(Y[:, 0]),
+                out.append(point_kernels.row_median_residuals(self.D[k], np.ascontiguousarray(Y[:, 0]),
                                                         np.ascontiguousarray(Y[:, 1]), cols))
                 continue
             step = max(1, _BLOCK_ENTRIES // max(len(cols), 1))

@@ -38,7 +38,8 @@ def pytest_sessionstart(session):
     if hasattr(config, "workerinput") or config.option.collectonly:
         return  # a worker (the controller did it), or nothing will run
     parts = max(1, min(os.cpu_count() or 1, 4))
-    code = "import sys; from mpe3d.solvers import kernels; kernels.warm(part=int(sys.argv[1]), parts={})"
+    code = ("import sys; import mpe3d.solvers, mpe3d.solvers.sfm.bundle; from mpe3d.solvers import warmup; "
+            "warmup.warm(part=int(sys.argv[1]), parts={})")
     compiling = [subprocess.Popen([sys.executable, "-c", code.format(parts), str(part)])
                  for part in range(parts)]
     if any([process.wait() for process in compiling]):  # each waited for, failed or not

@@ -10,6 +10,8 @@ from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
 
 from mpe3d.harness.experiment.config import make_config
 from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
@@ -201,3 +203,20 @@ def blas_fuses_small_products() -> bool:
     chained = [[[exact_fma(A[t, i, 2], B[t, 2, j], exact_fma(A[t, i, 1], B[t, 1, j], A[t, i, 0] * B[t, 0, j]))
                  for j in range(7)] for i in range(3)] for t in range(40)]
     return np.array_equal(A @ B, np.array(chained))
+
+
+def scaled_track_set(folder, n_points=60, n_views=5, seed=3):
+    """Keypoints of a random cloud through scaled orthographic cameras (exact,
+    no noise), its points as reference, and pinhole-free cameras."""
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n_points, 3))
+    rows = []
+    for k in range(n_views):
+        R = Rotation.from_euler("yx", [25.0 * k - 50.0, 10.0 * (k % 2)], degrees=True).as_matrix()
+        uv = 120.0 * X @ R[:2].T + [320.0 + 5 * k, 240.0]
+        rows += [(f"v{k}", i, *uv[i]) for i in range(n_points)]
+    folder.mkdir(parents=True, exist_ok=True)
+    pd.DataFrame(rows, columns=["view", "point", "x", "y"]).to_csv(folder / "keypoints.csv", index=False)
+    pd.DataFrame({"id": range(n_points), "x": X[:, 0], "y": X[:, 1], "z": X[:, 2]}).to_csv(
+        folder / "points.csv", index=False)
+    return X

@@ -1,9 +1,11 @@
 """Plug-ins: a solver or a dataset in a file or an installed package, used as
 ours are, fingerprinted on their own, and never able to break mpe3d."""
+import io
 import shutil
 import textwrap
 
 import numpy as np
+import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 
@@ -207,3 +209,30 @@ def test_plugin_on_the_command_line_and_the_solver_axis(plugin, tmp_path):
     out = run_cli("sweep", str(yaml), "--dry-run")
     assert out.returncode == 2 and "plugins: plug-in" in out.stderr
     assert "nowhere.py: no such file at" in out.stderr and out.stderr.strip().endswith("bad.yaml:2")
+
+
+def test_a_plugin_stress_solver_runs_wherever_ours_do(plugin, tmp_path):
+    """A plug-in's stress solver is a choice of ``reconstruct --objective
+    stress`` and of a ``pipeline=tracks`` sweep, as refine is: the accepted
+    solvers come from the registry, not from a list of ours."""
+    import json
+
+    from tests.helpers import scaled_track_set
+
+    scaled_track_set(tmp_path / "data")
+    out, report = tmp_path / "cloud.ply", tmp_path / "report.json"
+    done = run_cli("reconstruct", str(tmp_path / "data" / "keypoints.csv"), "--objective", "stress",
+                   "--solver", "avgmds", "--plugin", str(plugin), "--out", str(out), "--report", str(report))
+    assert done.returncode == 0, done.stderr
+    assert out.is_file() and json.loads(report.read_text())["solver"] == "avgmds"
+    sweep = tmp_path / "plugin-tracks.yaml"
+    sweep.write_text(f"name: plugin-tracks\nbase:\n  pipeline: tracks\n  tracks.root: {tmp_path / 'data'}\n"
+                     "  tracks.path: keypoints.csv\n  tracks.truth: points.csv\n  tracks.objective: stress\n"
+                     "grid:\n  solver.name: [avgmds, refine]\n")
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    done = run_cli("sweep", str(sweep), "--plugin", str(plugin), "--jobs", "1", "--quiet", "--tracking-uri", uri,
+                   cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    table = run_cli("runs", "plugin-tracks", "--format", "csv", "--tracking-uri", uri, cwd=tmp_path)
+    rows = pd.read_csv(io.StringIO(table.stdout))
+    assert sorted(rows["solver"]) == ["avgmds", "refine"] and set(rows["status"]) == {"FINISHED"}

@@ -225,6 +225,11 @@ def run(config: RunConfig, streams) -> RunResult:
                      aligned=cloud, facts=facts)
 
 
+def method(config) -> str:
+    """The photos' pipeline: COLMAP reconstructs, no solver of ours."""
+    return "COLMAP"
+
+
 def title(result: RunResult) -> str:
     config = result.config
     return (f"{config['shape']}  COLMAP, {config['images.count']} photos  "

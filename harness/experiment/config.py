@@ -16,6 +16,17 @@ from typing import Any, Mapping
 import yaml
 
 from mpe3d.errors import MpeError, coerce, suggest
+from mpe3d.options import (
+    CAMERAS,
+    INITS,
+    OBJECTIVES,
+    PROJECTIONS,
+    REPROJECTION_LOSSES,
+    STARTS,
+    STRESS_LOSSES,
+    Choice,
+    Interval,
+)
 
 SCHEMA_VERSION = 2  # bump when a key's meaning changes: every cached run is redone
 
@@ -24,15 +35,9 @@ VIEW_LAYOUTS = ("band", "sphere")
 NOISE_TYPES = ("none", "distance", "correspondence")
 NOISE_VIEWS = ("one", "all")
 NOISE_ROWS = ("per_view", "shared")
-PROJECTIONS = ("fixed", "variable")
 OBSERVE = ("distances", "coordinates")
-INITS = ("smart", "random")
 ALIGNS = ("rigid", "ransac4")
 PIPELINE_NAMES = ("points", "colmap", "tracks")  # execute.pipeline(name) runs them
-TRACK_CAMERAS = ("auto", "orthographic", "scaled", "perspective", "radial")  # reconstruct's camera
-TRACK_OBJECTIVES = ("reprojection", "stress")
-TRACK_LOSSES = ("l2", "huber", "soft_l1", "cauchy")
-TRACK_STARTS = ("own", "file")
 # The files of a tracks run: hashed by their content, never by their path (config.hash)
 TRACK_FILES = ("tracks.path", "tracks.truth", "tracks.cameras")
 MATCHINGS = ("auto", "exhaustive", "sequential")
@@ -41,16 +46,27 @@ BACKENDS = ("loky", "dask")  # where a sweep's runs are computed (the runner's c
 
 @dataclass(frozen=True)
 class Key:
-    """One documented configuration key."""
+    """One documented configuration key and its rule: a :class:`Choice` of
+    names (a tuple of names is one) or an :class:`Interval` of numbers."""
 
     default: Any
     kind: type
     doc: str
-    choices: tuple = ()
+    rule: Choice | Interval | tuple | None = None
     optional: bool = False  # ``None`` is a valid value
     # Keys added after a cache already existed are hashed only away from their
     # default, so adding a key never invalidates the runs tracked before it.
     hashed_at_default: bool = True
+    unit: str = ""  # said after the rule in an error ("pixels")
+
+    def __post_init__(self):
+        if isinstance(self.rule, tuple):
+            object.__setattr__(self, "rule", Choice(self.rule))
+
+    @property
+    def choices(self) -> tuple[str, ...]:
+        """The names a choice key takes (empty for any other key)."""
+        return self.rule.names if isinstance(self.rule, Choice) else ()
 
 
 KEYS: dict[str, Key] = {
@@ -59,38 +75,38 @@ KEYS: dict[str, Key] = {
     "tracks.root": Key(None, str, "pipeline tracks: the folder that tracks.path, tracks.truth and tracks.cameras are relative to (null: the current folder); not part of a run's identity", optional=True, hashed_at_default=False),
     "tracks.truth": Key(None, str, "pipeline tracks: reference 3D points (CSV id,x,y,z with the tracks' ids), for the 3D error after a similarity", optional=True, hashed_at_default=False),
     "tracks.cameras": Key(None, str, "pipeline tracks: reference cameras, K 3x4 pinhole matrices (.npy) in the views' order, for the camera-centre error", optional=True, hashed_at_default=False),
-    "tracks.views": Key(None, int, "pipeline tracks: keep the first this many views (null: all)", optional=True, hashed_at_default=False),
-    "tracks.noise_px": Key(0.0, float, "pipeline tracks: Gaussian noise of this standard deviation in pixels added to every observation", hashed_at_default=False),
-    "tracks.wrong_fraction": Key(0.0, float, "pipeline tracks: this share of the observations each replaced by another track's observation in the same view (wrong matches), in [0, 1)", hashed_at_default=False),
-    "tracks.drop_fraction": Key(0.0, float, "pipeline tracks: this share of the observations removed (missing observations), in [0, 1)", hashed_at_default=False),
-    "tracks.objective": Key("reprojection", str, "pipeline tracks: bundle adjustment of the reprojection error, or the 3DMPE stress of the pixel distances solved by solver.name (refine, factorize or sgd)", TRACK_OBJECTIVES, hashed_at_default=False),
-    "tracks.camera": Key("auto", str, "pipeline tracks, objective reprojection: the camera model (auto: scaled or perspective, whichever explains the keypoints better; radial: the Bundler/BAL pinhole with k1, k2)", TRACK_CAMERAS, hashed_at_default=False),
-    "tracks.loss": Key("l2", str, "pipeline tracks: the robust loss of the reprojection error (scale 1 px), or refine's loss of the stress (l2, huber, soft_l1)", TRACK_LOSSES, hashed_at_default=False),
-    "tracks.outlier_threshold": Key(20.0, float, "pipeline tracks, objective reprojection: observations beyond this many robust sigmas are taken for wrong matches and dropped (.inf keeps all)", hashed_at_default=False),
-    "tracks.start": Key("own", str, "pipeline tracks: where bundle adjustment starts: mpe3d's own start, or the cameras and points of a Bundler or BAL file", TRACK_STARTS, hashed_at_default=False),
-    "images.count": Key(250, int, "pipeline colmap: photos rendered along the camera spiral (>= 2)", hashed_at_default=False),
-    "images.size": Key(400, int, "pipeline colmap: width and height of each photo in pixels (64 to 4096)", hashed_at_default=False),
+    "tracks.views": Key(None, int, "pipeline tracks: keep the first this many views (null: all)", optional=True, hashed_at_default=False, rule=Interval(int, 2, None), unit="(or null: all views)"),
+    "tracks.noise_px": Key(0.0, float, "pipeline tracks: Gaussian noise of this standard deviation in pixels added to every observation", hashed_at_default=False, rule=Interval(float, 0, None), unit="pixels"),
+    "tracks.wrong_fraction": Key(0.0, float, "pipeline tracks: this share of the observations each replaced by another track's observation in the same view (wrong matches), in [0, 1)", hashed_at_default=False, rule=Interval(float, 0, 1, "left")),
+    "tracks.drop_fraction": Key(0.0, float, "pipeline tracks: this share of the observations removed (missing observations), in [0, 1)", hashed_at_default=False, rule=Interval(float, 0, 1, "left")),
+    "tracks.objective": Key("reprojection", str, "pipeline tracks: bundle adjustment of the reprojection error, or the 3DMPE stress of the pixel distances solved by solver.name (any stress solver, a plug-in's too)", OBJECTIVES, hashed_at_default=False),
+    "tracks.camera": Key("auto", str, "pipeline tracks, objective reprojection: the camera model (auto: scaled or perspective, whichever explains the keypoints better; radial: the Bundler/BAL pinhole with k1, k2)", CAMERAS, hashed_at_default=False),
+    "tracks.loss": Key("l2", str, "pipeline tracks: the robust loss of the reprojection error (scale 1 px), or refine's loss of the stress (l2, huber, soft_l1)", REPROJECTION_LOSSES, hashed_at_default=False),
+    "tracks.outlier_threshold": Key(20.0, float, "pipeline tracks, objective reprojection: observations beyond this many robust sigmas are taken for wrong matches and dropped (.inf keeps all)", hashed_at_default=False, rule=Interval(float, 0, None, "neither"), unit="(.inf keeps every observation)"),
+    "tracks.start": Key("own", str, "pipeline tracks: where bundle adjustment starts: mpe3d's own start, or the cameras and points of a Bundler or BAL file", STARTS, hashed_at_default=False),
+    "images.count": Key(250, int, "pipeline colmap: photos rendered along the camera spiral (>= 2)", hashed_at_default=False, rule=Interval(int, 2, None)),
+    "images.size": Key(400, int, "pipeline colmap: width and height of each photo in pixels (64 to 4096)", hashed_at_default=False, rule=Interval(int, 64, 4096), unit="pixels"),
     "images.matching": Key("auto", str, "pipeline colmap: COLMAP's matching: exhaustive, sequential along the camera path, or auto (exhaustive up to 50 photos)", MATCHINGS, hashed_at_default=False),
     "shape": Key("chair", str, "bundled name, mesh path, shapenet:<synset>/<id>, pix3d:<category>/<model>, or torus|box|sphere|cone"),
-    "points": Key(512, int, "number N of points sampled area-uniformly on the surface (>= 4)"),
-    "views": Key(4, int, "number K of views (>= 2)"),
-    "angle_range": Key(360.0, float, "angle band theta_r in degrees from which the view angles are drawn (0 < theta_r <= 360)"),
+    "points": Key(512, int, "number N of points sampled area-uniformly on the surface (>= 4)", rule=Interval(int, 4, None)),
+    "views": Key(4, int, "number K of views (>= 2)", rule=Interval(int, 2, None)),
+    "angle_range": Key(360.0, float, "angle band theta_r in degrees from which the view angles are drawn (0 < theta_r <= 360)", rule=Interval(float, 0, 360, "right"), unit="degrees"),
     "view_layout": Key("band", str, "band: angles drawn from theta_r split into K bins (the paper); sphere: K nearly equidistant directions (Fibonacci lattice, randomly turned)", VIEW_LAYOUTS, hashed_at_default=False),
     "visibility.mode": Key("exact", str, "which points each view sees: all; exact (k views each); count (random per view); raytrace (rays towards the camera against the mesh); zbuffer (the authors' z-buffer on the points)", VISIBILITY_MODES),
     "visibility.k": Key(3, int, "mode exact: every point is visible in exactly k views (1 <= k <= views)"),
     "visibility.count": Key(None, int, "mode count: every view keeps this many random points; null means round(0.75 * points)", optional=True),
-    "visibility.n_rays": Key(None, int, "mode zbuffer: rays a side of each view's grid (a ray keeps the nearest point within 2 grid spacings); null means points // 3, the authors' default (their README uses 400)", optional=True, hashed_at_default=False),
+    "visibility.n_rays": Key(None, int, "mode zbuffer: rays a side of each view's grid (a ray keeps the nearest point within 2 grid spacings); null means points // 3, the authors' default (their README uses 400)", optional=True, hashed_at_default=False, rule=Interval(int, 2, None)),
     "visibility.min_views": Key(0, int, "keep only the points visible in at least this many views (0 keeps all), as in the paper's raytrace-count figure", hashed_at_default=False),
     "noise.type": Key("none", str, "distance: Gaussian noise on distance rows; correspondence: wrong correspondences", NOISE_TYPES),
-    "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]"),
+    "noise.fraction": Key(0.0, float, "q, the fraction of rows (distance) or points (correspondence) corrupted, in [0, 1]", rule=Interval(float, 0, 1)),
     "noise.rows": Key("per_view", str, "distance: the noisy rows drawn independently in each view, round(q n_k) of them, or one set of round(q N) points for all views (the authors' code)", NOISE_ROWS, hashed_at_default=False),
     "noise.views": Key("one", str, "correspondence: each wrong match is made in one random view of its point (the paper and the authors' code) or in all that see it (a consistent, undetectable wrong cloud)", NOISE_VIEWS, hashed_at_default=False),
-    "noise.amplitude": Key(0.05, float, "p: noise variance p*d (distance) or displacement radius p*d (correspondence), d = cloud diameter"),
+    "noise.amplitude": Key(0.05, float, "p: noise variance p*d (distance) or displacement radius p*d (correspondence), d = cloud diameter", rule=Interval(float, 0, None)),
     "projections": Key("fixed", str, "fixed: the solver is given P^k; variable: it estimates them", PROJECTIONS),
     "observe": Key("distances", str, "what each view hands the solver: its distance matrix (the paper) or its points' 2D coordinates", OBSERVE),
     "init": Key("smart", str, "smart: start from the baseline (MDS); random: uniform in the unit cube", INITS),
     "align": Key("rigid", str, "alignment before CD/EMD: rigid (O(3) + translation) or ransac4 (paper Eq. 6-7)", ALIGNS),
-    "seed": Key(0, int, "root seed; scene, noise, solver and metrics draw from separate streams of it"),
+    "seed": Key(0, int, "root seed; scene, noise, solver and metrics draw from separate streams of it", rule=Interval(int, 0, None)),
     "solver.name": Key("sgd", str, "solver name (see `mpe3d solvers`)"),
 }
 
@@ -287,9 +303,8 @@ def coerce_value(key: str, value: Any, spec: Key) -> Any:
     if value is None and spec.optional:
         return None
     value = coerce(key, value, spec.kind)
-    if spec.choices and value not in spec.choices:
-        raise MpeError(f"{key}: '{value}' is not one of {', '.join(spec.choices)}",
-                       key=key, hint=suggest(value, spec.choices))
+    if isinstance(spec.rule, Choice):
+        spec.rule.check(key, value)
     return value
 
 
@@ -297,32 +312,16 @@ def _check_ranges(v: dict[str, Any]) -> None:
     def bad(key: str, rule: str) -> MpeError:
         return MpeError(f"{key}: {rule}, got {v[key]}", key=key)
 
-    if v["points"] < 4:
-        raise bad("points", "must be at least 4")
-    if v["views"] < 2:
-        raise bad("views", "must be at least 2")
-    if not 0 < v["angle_range"] <= 360:
-        raise bad("angle_range", "must be in (0, 360] degrees")
+    for key, spec in KEYS.items():  # each key's own rule, then the rules between keys
+        if isinstance(spec.rule, Interval) and v[key] is not None:
+            spec.rule.check(key, v[key], spec.unit)
     if not 1 <= v["visibility.k"] <= v["views"]:
         raise bad("visibility.k", f"must be between 1 and views={v['views']}")
     if not 0 <= v["visibility.min_views"] <= v["views"]:
         raise bad("visibility.min_views", f"must be between 0 and views={v['views']}")
-    n_rays = v["visibility.n_rays"]
-    if n_rays is not None and n_rays < 2:
-        raise bad("visibility.n_rays", "must be at least 2")
     count = v["visibility.count"]
     if count is not None and not 2 <= count <= v["points"]:
         raise bad("visibility.count", f"must be between 2 and points={v['points']}")
-    if not 0.0 <= v["noise.fraction"] <= 1.0:
-        raise bad("noise.fraction", "must be in [0, 1]")
-    if v["noise.amplitude"] < 0:
-        raise bad("noise.amplitude", "must be >= 0")
-    if v["seed"] < 0:
-        raise bad("seed", "must be >= 0")
-    if v["images.count"] < 2:
-        raise bad("images.count", "must be at least 2")
-    if not 64 <= v["images.size"] <= 4096:
-        raise bad("images.size", "must be between 64 and 4096 pixels")
     if v["pipeline"] == "tracks":
         _check_tracks(v, bad)
     if v["observe"] == "coordinates" and v["noise.type"] == "distance":
@@ -349,20 +348,9 @@ def _check_tracks(v: dict[str, Any], bad) -> None:
             hint = " (relative paths are under tracks.root=FOLDER, else the current folder)" \
                 if v["tracks.root"] is None and not path.is_absolute() else ""
             raise MpeError(f"{key}: {path}: no such file or folder{hint}", key=key)
-    for key in ("tracks.wrong_fraction", "tracks.drop_fraction"):
-        if not 0.0 <= v[key] < 1.0:
-            raise bad(key, "must be in [0, 1)")
-    if not v["tracks.noise_px"] >= 0:
-        raise bad("tracks.noise_px", "must be >= 0 pixels")
-    if v["tracks.views"] is not None and v["tracks.views"] < 2:
-        raise bad("tracks.views", "must be at least 2 (or null: all views)")
-    if not v["tracks.outlier_threshold"] > 0:
-        raise bad("tracks.outlier_threshold", "must be > 0 (.inf keeps every observation)")
-    if v["tracks.objective"] == "stress":
-        if v["solver.name"] not in ("refine", "factorize", "sgd"):
-            raise bad("solver.name", "tracks.objective=stress is solved by refine, factorize or sgd")
-        if v["tracks.loss"] not in ("l2", "huber", "soft_l1"):
-            raise bad("tracks.loss", "the stress takes l2, huber or soft_l1")
+    if v["tracks.objective"] == "stress":  # solver.name: any registered solver (make_config checks it)
+        if v["tracks.loss"] not in STRESS_LOSSES:
+            raise bad("tracks.loss", f"the stress takes {' or '.join(STRESS_LOSSES)}")
         if v["tracks.loss"] != "l2" and v["solver.name"] != "refine":
             raise bad("tracks.loss", "a robust loss of the stress needs solver.name=refine")
 
@@ -394,6 +382,7 @@ def describe_keys() -> str:
     rows = []
     for key, spec in KEYS.items():
         default = "null" if spec.default is None else spec.default
-        choices = f" ({' | '.join(spec.choices)})" if spec.choices else ""
+        choices = f" ({' | '.join(spec.choices)})" if spec.choices else \
+            (f" ({spec.rule})" if spec.rule is not None else "")
         rows.append(f"  {key:<18} {str(default):<8} {spec.doc}{choices}")
     return "\n".join(rows)

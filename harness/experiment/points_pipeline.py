@@ -33,6 +33,11 @@ def run(config: RunConfig, streams) -> RunResult:
                      aligned=aligned, facts=facts)
 
 
+def method(config) -> None:
+    """A points run is named by its solver."""
+    return None
+
+
 def title(result: RunResult) -> str:
     config = result.config
     return (f"{config['shape']}  N={config['points']}  K={config['views']}  {config['projections']}  "

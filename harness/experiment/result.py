@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Protocol
+from typing import Any, Mapping, Protocol
 
 import numpy as np
 
@@ -60,4 +60,8 @@ class Pipeline(Protocol):
 
     def describe(self, summary: dict[str, Any]) -> list[str]:
         """The lines ``mpe3d run`` prints of :meth:`RunResult.summary`."""
+
+    def method(self, config: Mapping[str, Any]) -> str | None:
+        """The method a run of ``config`` is named by in tables and figures;
+        None: its solver's (the reports label the paper's solvers)."""
 

@@ -26,18 +26,13 @@ from mpe3d import solvers
 from mpe3d.errors import MpeError
 from mpe3d.harness.tracking.identity import code_identity
 from mpe3d.harness.userdata.formats import finite_array, read_projections, read_views
+from mpe3d.options import CAMERAS, OBJECTIVES, REPROJECTION_LOSSES, STARTS, STRESS_LOSSES
 from mpe3d.solvers import Observations, View
 from mpe3d.solvers.degenerate import check_geometry, collect_notes
 from mpe3d.solvers.sfm import bundle
-from mpe3d.solvers.sfm.adjust import REPROJECTION_LOSSES
 from mpe3d.solvers.sfm.bundle import FAR_FACTOR, MIN_RAY_ANGLE
-from mpe3d.solvers.sfm.cameras import CAMERAS, radial_cameras
-from mpe3d.solvers.stress import STRESS_LOSSES
+from mpe3d.solvers.sfm.cameras import radial_cameras
 
-SOLVERS = ("refine", "factorize", "sgd")
-OBJECTIVES = ("reprojection", "stress")
-CAMERA_CHOICES = ("auto",) + CAMERAS
-START_CHOICES = (None, "file", "own")
 LIKELY_MISSING = ((-1.0, -1.0), (0.0, 0.0))  # what OpenCV and VGG files write for "not seen"
 SYMMETRY_TOL = 1e-6  # relative: distance matrices written as text lose a little
 
@@ -260,14 +255,11 @@ def _check_pair(value, name):
 
 
 def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
-    if solver not in SOLVERS:
-        raise MpeError(f"solver: '{solver}' is not one of {', '.join(SOLVERS)}")
-    if objective is not None and objective not in OBJECTIVES:
-        raise MpeError(f"objective: '{objective}' is not one of {', '.join(OBJECTIVES)}")
-    if camera not in CAMERA_CHOICES:
-        raise MpeError(f"camera: '{camera}' is not one of {', '.join(CAMERA_CHOICES)}")
-    if loss not in REPROJECTION_LOSSES:
-        raise MpeError(f"loss: '{loss}' is not one of {', '.join(REPROJECTION_LOSSES)}")
+    solvers.get_solver(solver)  # any registered stress solver, a plug-in's too
+    if objective is not None:
+        OBJECTIVES.check("objective", objective)
+    CAMERAS.check("camera", camera)
+    REPROJECTION_LOSSES.check("loss", loss)
     if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)) \
             or not outlier_threshold > 0:
         raise MpeError(f"outlier_threshold: expected a number > 0 (inf keeps every observation), "
@@ -282,9 +274,8 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
             start: str | None = None) -> Problem:
     """Read and check every input of :func:`reconstruct` without solving anything."""
     _check_choices(solver, loss, objective, camera, outlier_threshold, missing)
-    if start not in START_CHOICES:
-        raise MpeError(f"start: '{start}' is not one of file, own (or None: the file's when "
-                       "it has one)")
+    if start is not None:  # None: the file's when it has one
+        STARTS.check("start", start)
     _check_pair(principal_point, "principal_point")
     _check_random_state(random_state)
     source = str(views) if isinstance(views, (str, Path)) else "views"
@@ -357,6 +348,9 @@ def _file_start(views, obs, source, start, objective, camera, projections, princ
 
 def solve_problem(problem: Problem) -> Result:
     """Solve a prepared problem and report on the result."""
+    from mpe3d.solvers import warmup
+
+    warmup.warm(problem.loss if problem.objective == "stress" else "l2")  # compiled before the clock
     start = time.perf_counter()
     with collect_notes(labels=problem.ids) as notes:  # notes about the input go in the report
         if problem.objective == "reprojection":
@@ -413,8 +407,9 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     projections : None, a path, or an array of K 2x3 / 3x3 / 3x4 matrices, default None
         Known cameras (the fixed setting): orthographic rows or rotations, or
         3x4 pinhole matrices (reprojection only). None estimates them.
-    solver : {"refine", "factorize", "sgd"}, default "refine"
-        The stress solver (``objective="stress"``).
+    solver : str, default "refine"
+        The stress solver (``objective="stress"``): any registered solver
+        (``mpe3d solvers``), a plug-in's included.
     loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
         rho of the squared residual (reprojection, scale 1 px), or refine's loss
         of the stress (l2, huber, soft_l1).

@@ -15,9 +15,9 @@ from scipy.linalg import cho_factor, cho_solve
 from threadpoolctl import threadpool_limits
 
 from mpe3d.solvers import threads
-from mpe3d.solvers.kernels import reduced_system, transposed_products, whitened_blocks
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
+from mpe3d.solvers.sfm.kernels import reduced_system, transposed_products, whitened_blocks
 from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, rms
 
 
@@ -29,9 +29,6 @@ class Fit(NamedTuple):
     cameras: Cameras
     history: np.ndarray
     converged: bool
-
-
-REPROJECTION_LOSSES = ("l2", "huber", "soft_l1", "cauchy")
 
 
 def one_blas_thread(func):

@@ -47,13 +47,13 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from mpe3d.errors import MpeError
+from mpe3d.options import CAMERAS, REPROJECTION_LOSSES
 from mpe3d.solvers.degenerate import warn
 from mpe3d.solvers.factorize import affine_als, metric_upgrade_pd
 from mpe3d.solvers.linalg import elongation, sum_by
 from mpe3d.solvers.sfm import incremental
-from mpe3d.solvers.sfm.adjust import REPROJECTION_LOSSES, Fit, adjust, one_blas_thread
+from mpe3d.solvers.sfm.adjust import Fit, adjust, one_blas_thread
 from mpe3d.solvers.sfm.cameras import (
-    CAMERAS,
     MATRIX,
     PINHOLES,
     Cameras,
@@ -197,10 +197,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     tol : float, default 1e-10
         Stop when an iteration lowers the cost by less than this fraction.
     """
-    if camera not in ("auto",) + CAMERAS:
-        raise MpeError(f"camera: expected one of auto, {', '.join(CAMERAS)}, got {camera!r}")
-    if loss not in REPROJECTION_LOSSES:
-        raise MpeError(f"loss: expected one of {', '.join(REPROJECTION_LOSSES)}, got {loss!r}")
+    CAMERAS.check("camera", camera)
+    REPROJECTION_LOSSES.check("loss", loss)
     # the Levenberg-Marquardt options every adjust() of this problem shares
     lm_options = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
     flagged = epipolar_flags(tracks, outlier_threshold)
@@ -339,8 +337,7 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
     """The points (and each view's 2D translation) for known cameras: (K, 2, 3)
     orthonormal rows, an orthographic camera whose image origin is free, or
     (K, 3, 4) pinhole matrices, which fix everything but the points."""
-    if loss not in REPROJECTION_LOSSES:
-        raise MpeError(f"loss: expected one of {', '.join(REPROJECTION_LOSSES)}, got {loss!r}")
+    REPROJECTION_LOSSES.check("loss", loss)
     # the Levenberg-Marquardt options every adjust() of this problem shares
     lm_options = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
     matrices = np.asarray(matrices, dtype=float)
@@ -376,8 +373,7 @@ def from_start(tracks: Tracks, X: np.ndarray, cameras: Cameras, *, loss: str = "
     """Bundle adjustment from given points and cameras (a Bundler or BAL
     file's): every parameter free, wrong matches dropped as in
     :func:`bundle_adjust`, no start of ours tried."""
-    if loss not in REPROJECTION_LOSSES:
-        raise MpeError(f"loss: expected one of {', '.join(REPROJECTION_LOSSES)}, got {loss!r}")
+    REPROJECTION_LOSSES.check("loss", loss)
     lm_options = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
     used = _informative(tracks, np.ones(len(tracks.view), dtype=bool))
     if not np.all(np.isfinite(cameras.project(X, tracks.view[used], tracks.point[used]))):

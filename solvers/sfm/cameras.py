@@ -25,10 +25,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mpe3d.solvers.kernels import grouped_matvecs, pose_jacobians
+from mpe3d.options import CAMERA_MODELS
 from mpe3d.solvers.linalg import matvec_by_group
+from mpe3d.solvers.sfm.kernels import grouped_matvecs, pose_jacobians
 
-CAMERAS = ("orthographic", "scaled", "perspective", "radial")
+CAMERAS = tuple(CAMERA_MODELS)  # the models a camera array can hold
 PINHOLES = ("perspective", "radial")  # 3D translation, depth, a focal length
 # The affine camera u = A x + t (A any 2x3) is no camera model a user picks: it is
 # the start, and the floor that no metric model's error can go below.

@@ -33,7 +33,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.sparse import csr_matrix
 
-from mpe3d.solvers.kernels import eight_point_samples, sampson_costs, subspace_costs
+from mpe3d.solvers.sfm.epipolar_kernels import eight_point_samples, sampson_costs, subspace_costs
 from mpe3d.solvers.threads import map_drawn, map_in_order
 
 SIGMAS = 10.0  # a pair's residual beyond this many of its robust sigmas is flagged

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from mpe3d.solvers.kernels import lowest_cosines
 from mpe3d.solvers.linalg import pinv_psd, sum_by
+from mpe3d.solvers.sfm.kernels import lowest_cosines
 
 PAIRS = 30  # two-view hypotheses tried per point
 _REFINEMENTS = 2  # least-squares refits on a hypothesis's inliers

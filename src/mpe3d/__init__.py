@@ -40,8 +40,8 @@ _PUBLIC = {
     "load_sweep": "mpe3d.harness.experiment.sweep",
     "Tracker": "mpe3d.harness.tracking.store",
     "register_solver": "mpe3d.solvers",
-    "Interval": "mpe3d.solvers",
-    "Choice": "mpe3d.solvers",
+    "Interval": "mpe3d.options",
+    "Choice": "mpe3d.options",
     "Reconstruction": "mpe3d.solvers",
     "register_dataset": "mpe3d.harness.scene.shapes",
 }

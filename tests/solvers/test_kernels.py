@@ -1,12 +1,15 @@
 """The compiled kernels and the batched linear algebra behind the speed-ups
 (issue 16), each against the plain formulation it replaces."""
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from mpe3d.solvers import kernels
+from mpe3d.solvers import kernels, point_kernels, warmup
 from mpe3d.solvers.linalg import gram_by_group, matvec_by_group, pinv_psd, rows_by_group
+from mpe3d.solvers.sfm import epipolar_kernels
+from mpe3d.solvers.sfm import kernels as sfm_kernels
 from tests.helpers import blas_fuses_small_products
 
 
@@ -60,12 +63,12 @@ def test_multilateration_matches_numpy_gauss_newton(rng):
     d = np.linalg.norm(np.einsum("nij,j->ni", P, point) - Y, axis=1) + 0.01 * rng.normal(size=120)
     root = rng.uniform(0.5, 2.0, size=120)
     start = point + 0.3 * rng.normal(size=3)
-    got = kernels.multilaterate(start, P, Y, d, root, 10)
+    got = point_kernels.multilaterate(start, P, Y, d, root, 10)
     assert np.allclose(got, _gauss_newton(start, P, Y, d, root, 10), atol=1e-12)
     starts = np.array([0, 40, 80, 120])
     misfit = np.abs(d - np.linalg.norm(np.einsum("nij,j->ni", P, got) - Y, axis=1))
     want = [np.median(misfit[a:b]) for a, b in zip(starts[:-1], starts[1:])]
-    assert np.allclose(kernels.row_misfits(got, P, Y, d, starts), want, rtol=1e-14)
+    assert np.allclose(point_kernels.row_misfits(got, P, Y, d, starts), want, rtol=1e-14)
 
 
 def test_multilateration_in_one_view_falls_back_to_least_squares(rng):
@@ -80,7 +83,7 @@ def test_multilateration_in_one_view_falls_back_to_least_squares(rng):
     d = np.linalg.norm(np.einsum("nij,j->ni", P, point) - Y, axis=1)
     start = point + 0.2 * rng.normal(size=3)
     root = np.ones(50)
-    got = kernels.multilaterate(start, P, Y, d, root, 10)
+    got = point_kernels.multilaterate(start, P, Y, d, root, 10)
     assert np.allclose(got, _gauss_newton(start, P, Y, d, root, 10), atol=1e-10)
 
 
@@ -88,7 +91,7 @@ def test_pairwise_sum_is_numpys_sum_to_the_bit(rng):
     for n in (0, 1, 5, 7, 8, 9, 16, 17, 127, 128, 129, 300, 1000):
         for _ in range(20):
             a = rng.random(n) * 10.0 ** rng.integers(-6, 6, n)
-            assert kernels.pairwise_sum(a) == np.sum(a), n
+            assert point_kernels.pairwise_sum(a) == np.sum(a), n
 
 
 def _placed_by_numpy(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps):
@@ -105,7 +108,7 @@ def _placed_by_numpy(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps)
     def placed(x, stacked, weights=None):
         P, Y, d, starts = stacked
         root = np.ones(len(d)) if weights is None else np.repeat(np.sqrt(weights), np.diff(starts))
-        return kernels.multilaterate(x, P, Y, d, root, steps)
+        return point_kernels.multilaterate(x, P, Y, d, root, steps)
 
     scout_rows = [tuple(a[::-(-len(r[2]) // scouts)] for a in r) for r in rows]
     few = stack(scout_rows)
@@ -113,13 +116,13 @@ def _placed_by_numpy(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps)
     for a in range(len(rows)):
         for b in range(a + 1, len(rows)):
             point = placed(x, stack([scout_rows[a], scout_rows[b]]))
-            cost = np.minimum(kernels.row_misfits(point, *few), line).sum()
+            cost = np.minimum(point_kernels.row_misfits(point, *few), line).sum()
             if cost < best_cost:
                 best, best_cost = point, cost
     every = stack(rows)
     for last in range(reweights, 0, -1):
         using = every if last == 1 else few
-        best = placed(best, using, 1.0 / np.maximum(kernels.row_misfits(best, *using), line / sigmas) ** 2)
+        best = placed(best, using, 1.0 / np.maximum(point_kernels.row_misfits(best, *using), line / sigmas) ** 2)
     return best
 
 
@@ -136,7 +139,7 @@ def test_placing_a_point_in_one_call_is_the_numpy_loop_to_the_bit(rng, n_rows):
     d[starts[1]:starts[2]] *= 1.5  # a corrupted row
     for start in (point + 0.3 * rng.normal(size=3), rng.normal(size=3)):
         args = (start, P, Y, d, starts, 0.05, 5.0, 64, 3, 10)
-        assert np.array_equal(kernels.place_point(*args), _placed_by_numpy(*args))
+        assert np.array_equal(point_kernels.place_point(*args), _placed_by_numpy(*args))
 
 
 def test_pinv_psd_is_pinv_on_good_and_degenerate_systems(rng):
@@ -186,19 +189,19 @@ def test_the_reduced_system_subtracts_the_sparse_stack_s_gram_matrix(rng, per_vi
             np.add.at(dense[3 * point[t] + a], cols[t], Y[t, a])
     starts = np.concatenate([[0], np.cumsum(np.bincount(point, minlength=n_points))])
     V = rng.normal(size=(size, size))
-    S = kernels.reduced_system(V, Y, view, starts, np.full((n_views, n_views, per_view, per_view), np.nan))
+    S = sfm_kernels.reduced_system(V, Y, view, starts, np.full((n_views, n_views, per_view, per_view), np.nan))
     upper = np.triu_indices(size)
     assert np.allclose(S[upper], (V - dense.T @ dense)[upper], rtol=1e-12, atol=1e-12)
     assert np.array_equal(np.tril(S, -1), np.tril(V, -1))  # Cholesky reads the upper triangle only
-    monkeypatch.setattr(kernels, "_THREADED_PAIRS", 0)  # threads however small the system
+    monkeypatch.setattr(sfm_kernels, "_THREADED_PAIRS", 0)  # threads however small the system
     for threads in (2, 3, 8):
-        assert np.array_equal(kernels.reduced_system(V, Y, view, starts, np.full(
+        assert np.array_equal(sfm_kernels.reduced_system(V, Y, view, starts, np.full(
             (n_views, n_views, per_view, per_view), np.nan), threads), S)
     # the compiled loops index unchecked: a V that does not fit is refused, not written past
     # (kernels.warm() once passed a 2 x 2 V for a 3 x 3 system, and the heap it corrupted
     # crashed sweep workers in the garbage collector, at random)
     with pytest.raises(ValueError, match="do not fit"):
-        kernels.reduced_system(np.eye(size - 1), Y, view, starts,
+        sfm_kernels.reduced_system(np.eye(size - 1), Y, view, starts,
                                np.empty((n_views, n_views, per_view, per_view)))
 
 
@@ -207,7 +210,7 @@ def test_the_transposed_products_are_numpy_s_stacked_products(rng):
     view where its BLAS chains fused multiply-adds, else to rounding."""
     A, B = rng.normal(size=(200, 2, 3)), rng.normal(size=(200, 2, 7))
     for right in (A, B):
-        got = kernels.transposed_products(A, right)
+        got = sfm_kernels.transposed_products(A, right)
         expected = A.transpose(0, 2, 1) @ right
         if blas_fuses_small_products():
             assert np.array_equal(got, expected)
@@ -221,7 +224,7 @@ def test_the_whitened_blocks_are_numpy_s_stacked_products(rng, c):
     matmul where its BLAS chains fused multiply-adds, else to rounding."""
     root, W = rng.normal(size=(30, 3, 3)), rng.normal(size=(200, 3, c))
     point, rows = rng.integers(0, 30, size=200), rng.permutation(200)
-    got = kernels.whitened_blocks(root, W, point, rows)
+    got = sfm_kernels.whitened_blocks(root, W, point, rows)
     expected = np.matmul(root[point], W[rows])
     if blas_fuses_small_products():
         assert np.array_equal(got, expected)
@@ -237,9 +240,9 @@ def test_a_robust_losss_kernel_is_warmed_only_for_a_solve_that_asks_for_it():
 
     code = """
 from mpe3d import solvers
-from mpe3d.solvers import kernels
+from mpe3d.solvers import kernels, warmup
 from tests.helpers import scene_and_observations
-kernels.warm()
+warmup.warm()
 print(len(kernels.DENSE_KERNELS[kernels.L2].signatures), len(kernels.DENSE_KERNELS[kernels.HUBER].signatures))
 _, _, obs = scene_and_observations(points=40, views=3, projections="fixed", **{"noise.type": "distance",
                                    "noise.fraction": 0.3, "noise.amplitude": 0.05})
@@ -284,7 +287,7 @@ def test_stresses_of_the_same_observations_share_their_inputs():
 def test_compiled_median_is_numpys(rng):
     """Odd and even counts, ties and all-equal rows: the rejection line
     compares misfits with it, so it must be numpy's to the bit."""
-    from mpe3d.solvers.kernels import median_in_place
+    from mpe3d.solvers.point_kernels import median_in_place
 
     for m in [*range(1, 30), 200, 201, 620, 621, 3000]:
         for values in (rng.normal(size=m), rng.integers(0, 3, size=m).astype(float), np.ones(m),
@@ -346,7 +349,7 @@ def test_compiled_affine_sweeps_are_the_numpy_ones(rng, noise):
     view, point = np.nonzero(seen)
     z = np.einsum("tab,ta->tb", L[view], X[point]) + t[view] + noise * rng.normal(size=(len(view), 2))
     start = X + 0.3 * rng.normal(size=X.shape)  # the sweeps' own start, away from the answer
-    got = kernels.affine_als(view, point, z, start, np.bincount(point, minlength=N)[point] >= 2,
+    got = point_kernels.affine_als(view, point, z, start, np.bincount(point, minlength=N)[point] >= 2,
                              K, 300, 1e-13, 1e-14)
     want = _numpy_affine_als(view, point, z, start, N, K, 300, 1e-13, 1e-14)
     assert got[3] == want[3]
@@ -356,44 +359,94 @@ def test_compiled_affine_sweeps_are_the_numpy_ones(rng, noise):
     assert np.all(got[0][71] == 0.0)
 
 
-WARMED = ("place_point", "view_stress", "pose_jacobians", "affine_als", "reduced_system", "eight_point_samples",
-          "l2_views", "sampson_costs", "guttman_pass", "subspace_costs", "transposed_products",
-          "row_median_residuals", "whitened_blocks")
-
-
 @pytest.mark.parametrize("parts", [2, 3, 4])
-def test_warm_in_parts_calls_every_kernel_of_every_loss_once(monkeypatch, parts):
+def test_warm_in_parts_calls_every_warm_up_once(monkeypatch, parts):
     """The shares of ``warm(part=, parts=)`` are disjoint and together compile
-    what ``warm`` does for every loss: no kernel is left for the suite's
+    every registered kernel of every loss: no kernel is left for the suite's
     workers to compile, nor compiled twice side by side."""
+    import dataclasses
+
     calls = []
-
-    def record(name):
-        def call(*args):
-            loss = args[5] if name == "view_stress" else None  # each loss has its own kernel
-            calls.append((name, loss, args[0] is None if name == "view_stress" else None))
-        return call
-
-    for name in WARMED:
-        monkeypatch.setattr(kernels, name, record(name))
-
-    def one_process():
-        monkeypatch.setattr(kernels, "warmed", False)
-        monkeypatch.setattr(kernels, "_warm_losses", set())
-        calls.clear()
-        for loss in ("l2", "huber", "soft_l1"):
-            kernels.warm(loss)
-        return sorted(calls, key=repr)
-
-    expected = one_process()
-    assert {name for name, _, _ in expected} == set(WARMED) and len(expected) == len(WARMED) + 3
+    everything = {name: dataclasses.replace(step, call=lambda name=name: calls.append(name))
+                  for name, step in warmup.registered().items()}
+    monkeypatch.setattr(warmup, "_REGISTRY", everything)
+    # the stress and SfM kernels are registered when their modules are imported
+    for module in KERNEL_MODULES:
+        assert any(name.startswith(module.__name__ + ".") for name in everything), module
     shares = []
     for part in range(parts):
-        monkeypatch.setattr(kernels, "_warm_losses", set())
         calls.clear()
-        kernels.warm(part=part, parts=parts)
+        warmup.warm(part=part, parts=parts)
         shares.append(list(calls))
     assert all(shares)  # every process has something to compile
-    assert sorted((c for share in shares for c in share), key=repr) == expected
+    assert sorted(c for share in shares for c in share) == sorted(everything)
     with pytest.raises(ValueError, match="part must be in"):
-        kernels.warm(part=parts, parts=parts)
+        warmup.warm(part=parts, parts=parts)
+
+
+def test_a_solve_warms_only_its_loss(monkeypatch):
+    """``warm(loss)`` calls the warm-ups of every loss-free kernel and of
+    ``loss``'s own, each once per process."""
+    import dataclasses
+
+    calls = []
+    everything = {name: dataclasses.replace(step, call=lambda name=name: calls.append(name))
+                  for name, step in warmup.registered().items()}
+    monkeypatch.setattr(warmup, "_REGISTRY", everything)
+    monkeypatch.setattr(warmup, "_DONE", set())
+    warmup.warm("huber")
+    warmup.warm("huber")
+    assert sorted(calls) == sorted(n for n, w in everything.items() if w.loss in (None, "huber"))
+    assert warmup.warmed("huber") and not warmup.warmed("soft_l1")
+
+
+KERNEL_MODULES = (kernels, point_kernels, sfm_kernels, epipolar_kernels)
+
+
+def _references(modules) -> tuple[set[str], dict[str, set[str]]]:
+    """The compiled kernels (``@njit``) of ``modules``, and what each top-level
+    function or constant names in its body: a kernel calls another by name,
+    or picks one from a table (``DENSE_KERNELS``)."""
+    import ast
+    import inspect
+
+    compiled, names = set(), {}
+    for module in modules:
+        for node in ast.parse(inspect.getsource(module)).body:
+            if isinstance(node, ast.FunctionDef):
+                key = node.name
+                if any("njit" in ast.unparse(d) for d in node.decorator_list):
+                    compiled.add(key)
+            elif isinstance(node, ast.Assign) and isinstance(node.targets[0], ast.Name):
+                key = node.targets[0].id
+            else:
+                continue
+            body = node.body if isinstance(node, ast.FunctionDef) else [node.value]
+            names[key] = {n.id for part in body for n in ast.walk(part) if isinstance(n, ast.Name)}
+    return compiled, names
+
+
+def test_every_compiled_kernel_has_its_warm_up():
+    """Every compiled kernel of the solvers is compiled by a warm-up: it has
+    its own entry where it is defined (``@warm_up``), or a kernel with one
+    calls it. Read off the source, so numba's cache cannot hide a kernel.
+    A kernel added without a warm-up fails here."""
+    import pkgutil
+
+    import mpe3d.solvers as package
+
+    modules = [__import__(info.name, fromlist=["_"])
+               for info in pkgutil.walk_packages(package.__path__, package.__name__ + ".")]
+    with_kernels = [m for m in modules if "@njit" in Path(m.__file__).read_text()]
+    assert set(with_kernels) == set(KERNEL_MODULES), with_kernels  # kernels live in these only
+    compiled, names = _references(with_kernels)
+    reached = set()
+    todo = [name.removeprefix(module.__name__ + ".").split(".")[0]
+            for name in warmup.registered() for module in KERNEL_MODULES
+            if name.startswith(module.__name__ + ".")]
+    while todo:
+        name = todo.pop()
+        if name not in reached:
+            reached.add(name)
+            todo.extend(names.get(name, ()))
+    assert compiled <= reached, sorted(compiled - reached)

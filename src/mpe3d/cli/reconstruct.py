@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 from mpe3d.errors import MpeError
+from mpe3d.options import CAMERAS, OBJECTIVES, REPROJECTION_LOSSES, STARTS
 
 
 def _pair(text: str):
@@ -35,15 +36,15 @@ def add_parser(sub) -> None:
     rec.add_argument("--projections", metavar="FILE",
                      help="known cameras (.npy or .json, K matrices: 2x3 or 3x3 orthographic, "
                      "or 3x4 pinhole): the fixed setting")
-    rec.add_argument("--objective", choices=("reprojection", "stress"),
+    rec.add_argument("--objective", choices=OBJECTIVES.names,
                      help="reprojection (bundle adjustment; the default for keypoints) or "
                      "stress (paper Eq. 1; the default and only choice for distance matrices)")
     rec.add_argument("--camera", default="auto",
-                     choices=("auto", "orthographic", "scaled", "perspective", "radial"),
+                     choices=CAMERAS.names,
                      help="the camera model for reprojection (default auto: the pinhole camera "
                      "when it fits clearly better than weak perspective; radial: the pinhole "
                      "with radial distortion k1, k2, Bundler's and BAL's camera)")
-    rec.add_argument("--start", choices=("file", "own"),
+    rec.add_argument("--start", choices=STARTS.names,
                      help="where bundle adjustment starts: the input's cameras and points (a "
                      "Bundler or BAL file; the default when it has them) or mpe3d's own start")
     rec.add_argument("--principal-point", type=_pair, metavar="X,Y",
@@ -55,9 +56,10 @@ def add_parser(sub) -> None:
                      help="reprojection: drop observations beyond this many robust sigmas as "
                      "wrong matches (default 20; inf keeps all, and turns refine's rejection "
                      "rounds off for the stress)")
-    rec.add_argument("--solver", default="refine", help="stress solver: refine (default), "
-                     "factorize or sgd")
-    rec.add_argument("--loss", default="l2", choices=("l2", "huber", "soft_l1", "cauchy"),
+    rec.add_argument("--solver", default="refine", metavar="NAME",
+                     help="the stress solver: refine (default) or any other of `mpe3d solvers`, "
+                     "a plug-in's (--plugin) included")
+    rec.add_argument("--loss", default="l2", choices=REPROJECTION_LOSSES.names,
                      help="l2 (default), or a robust loss: huber, soft_l1 (cauchy: reprojection only)")
     rec.add_argument("--report", metavar="FILE.json", help="write per-view residuals (pixels "
                      "for reprojection), cameras, dropped and unplaced ids and runtime as JSON")

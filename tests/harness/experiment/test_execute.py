@@ -71,16 +71,16 @@ def test_ransac4_keeps_its_best_trial_not_its_first(rng):
 def test_lazy_imports_happen_before_the_clock(monkeypatch):
     seen = {}
 
-    from mpe3d.solvers import kernels
+    from mpe3d.solvers import warmup
 
     @register_solver("lazy-probe", constraints={}, paper=False, summary="test", imports=("colorsys",))
     def probe(observations, *, random_state=None):
         seen["imported"] = "colorsys" in sys.modules
-        seen["compiled"] = kernels.warmed
+        seen["compiled"] = warmup.warmed()
         return solvers.solve("factorize", observations, random_state=0)
 
     monkeypatch.delitem(sys.modules, "colorsys", raising=False)
-    monkeypatch.setattr(kernels, "warmed", False)
+    monkeypatch.setattr(warmup, "_DONE", set())
     try:
         _, _, obs = scene_and_observations(points=40, views=3)
         solvers.solve("lazy-probe", obs, random_state=0)

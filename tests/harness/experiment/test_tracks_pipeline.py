@@ -4,31 +4,13 @@ import shutil
 import numpy as np
 import pandas as pd
 import pytest
-from scipy.spatial.transform import Rotation
 
 from mpe3d.errors import MpeError
 from mpe3d.harness.experiment import execute, tracks_pipeline
 from mpe3d.harness.experiment.config import make_config
-from tests.helpers import REPO, SHARED, run_cli, short_track_set
+from tests.helpers import REPO, SHARED, run_cli, scaled_track_set, short_track_set
 
 REALDATA = SHARED / "realdata"
-
-
-def _write_scaled_set(folder, n_points=60, n_views=5, seed=3):
-    """Keypoints of a random cloud through scaled orthographic cameras (exact,
-    no noise), its points as reference, and pinhole-free cameras."""
-    rng = np.random.default_rng(seed)
-    X = rng.normal(size=(n_points, 3))
-    rows = []
-    for k in range(n_views):
-        R = Rotation.from_euler("yx", [25.0 * k - 50.0, 10.0 * (k % 2)], degrees=True).as_matrix()
-        uv = 120.0 * X @ R[:2].T + [320.0 + 5 * k, 240.0]
-        rows += [(f"v{k}", i, *uv[i]) for i in range(n_points)]
-    folder.mkdir(parents=True, exist_ok=True)
-    pd.DataFrame(rows, columns=["view", "point", "x", "y"]).to_csv(folder / "keypoints.csv", index=False)
-    pd.DataFrame({"id": range(n_points), "x": X[:, 0], "y": X[:, 1], "z": X[:, 2]}).to_csv(
-        folder / "points.csv", index=False)
-    return X
 
 
 def _config(folder, **keys):
@@ -37,7 +19,7 @@ def _config(folder, **keys):
 
 
 def test_exact_keypoints_reconstruct_exactly(tmp_path):
-    _write_scaled_set(tmp_path)
+    scaled_track_set(tmp_path)
     result = execute.run(_config(tmp_path))
     m = result.metrics
     assert m["rms_px"] < 1e-6 and m["rms_px_all"] < 1e-6 and m["rms_px_clean"] < 1e-6
@@ -87,7 +69,7 @@ def test_a_view_left_with_too_few_observations_is_left_out_with_a_note():
 
 
 def test_wrong_matches_are_caught_and_scored_on_the_clean_observations(tmp_path):
-    _write_scaled_set(tmp_path, n_points=80, n_views=6)
+    scaled_track_set(tmp_path, n_points=80, n_views=6)
     clean = execute.run(_config(tmp_path)).metrics
     bad = execute.run(_config(tmp_path, **{"tracks.wrong_fraction": 0.05, "tracks.noise_px": 0.5})).metrics
     assert bad["wrong"] == 24 and bad["caught"] >= 20
@@ -96,7 +78,7 @@ def test_wrong_matches_are_caught_and_scored_on_the_clean_observations(tmp_path)
 
 
 def test_runs_are_identified_by_the_data_not_its_path(tmp_path):
-    _write_scaled_set(tmp_path / "a")
+    scaled_track_set(tmp_path / "a")
     shutil.copytree(tmp_path / "a", tmp_path / "b")
     first, moved = _config(tmp_path / "a"), _config(tmp_path / "b")
     assert first.hash() == moved.hash()
@@ -117,7 +99,7 @@ def test_runs_are_identified_by_the_data_not_its_path(tmp_path):
     ({"tracks.objective": "stress", "tracks.loss": "cauchy"}, "tracks.loss"),
 ])
 def test_bad_keys_are_refused_in_one_line(tmp_path, keys, says):
-    _write_scaled_set(tmp_path)
+    scaled_track_set(tmp_path)
     with pytest.raises(MpeError) as error:
         _config(tmp_path, **keys)
     assert says in str(error.value) and "\n" not in str(error.value)
@@ -130,7 +112,7 @@ def test_the_cli_says_one_line_for_a_missing_data_set(tmp_path):
 
 
 def test_the_stress_objective_runs_on_tracks(tmp_path):
-    _write_scaled_set(tmp_path)
+    scaled_track_set(tmp_path)
     m = execute.run(_config(tmp_path, **{"tracks.objective": "stress", "solver.name": "refine"})).metrics
     assert m["rms_px"] < 1e-3 and m["error_3d_pct"] < 1e-3
 

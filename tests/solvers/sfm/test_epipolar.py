@@ -3,9 +3,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mpe3d.solvers.kernels import eight_point_samples, sampson_costs, subspace_costs
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.epipolar import epipolar_outliers
+from mpe3d.solvers.sfm.epipolar_kernels import eight_point_samples, sampson_costs, subspace_costs
 from tests.helpers import SHARED, random_views
 
 N, K = 120, 8

@@ -1,0 +1,114 @@
+"""Every option's rule, declared once: :class:`Interval` (a range) and
+:class:`Choice` (one of a few names), and the choices that more than one part
+of mpe3d offers (the camera models, the objectives, the losses, the starts).
+
+The config keys (:data:`mpe3d.harness.experiment.config.KEYS`), a solver's
+options (``register_solver(constraints=...)``), the command line's
+``choices``, ``reconstruct``'s and ``bundle_adjust``'s checks and the
+generated references all read these declarations, so that a rule cannot
+drift between them. Light to import: the command line reads it while it
+builds its parser.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mpe3d.errors import MpeError, suggest
+
+__all__ = ["CAMERAS", "CAMERA_MODELS", "Choice", "INITS", "Interval", "OBJECTIVES", "PROJECTIONS",
+           "REPROJECTION_LOSSES", "STARTS", "STRESS_LOSSES"]
+
+
+@dataclass(frozen=True)
+class Interval:
+    """An option's allowed range, as in scikit-learn's ``_parameter_constraints``:
+    ``kind`` (int or float) between ``low`` and ``high`` (``None``: unbounded),
+    each end included or not (``closed``: "both", "left", "right", "neither")."""
+
+    kind: type
+    low: float | None
+    high: float | None
+    closed: str = "both"
+
+    def __contains__(self, value) -> bool:
+        left = self.closed in ("both", "left")
+        right = self.closed in ("both", "right")
+        return ((self.low is None or value > self.low or (left and value == self.low))
+                and (self.high is None or value < self.high or (right and value == self.high)))
+
+    def __str__(self) -> str:
+        noun = "an integer" if self.kind is int else "a number"
+        if self.high is None:
+            return f"{noun} {'>=' if self.closed in ('both', 'left') else '>'} {self.low:g}"
+        if self.low is None:
+            return f"{noun} {'<=' if self.closed in ('both', 'right') else '<'} {self.high:g}"
+        left = "[" if self.closed in ("both", "left") else "("
+        right = "]" if self.closed in ("both", "right") else ")"
+        return f"{noun} in {left}{self.low:g}, {self.high:g}{right}"
+
+    def requirement(self) -> str:
+        """The rule as a config error says it: "must be at least 4",
+        "must be between 64 and 4096", "must be in [0, 1)"."""
+        closed_low = self.closed in ("both", "left")
+        if self.high is None:
+            if self.kind is int and closed_low and self.low > 0:  # a count
+                return f"must be at least {self.low:g}"
+            return f"must be {'>=' if closed_low else '>'} {self.low:g}"
+        if self.low is None:
+            return f"must be {'<=' if self.closed in ('both', 'right') else '<'} {self.high:g}"
+        if self.kind is int and self.closed == "both":
+            return f"must be between {self.low:g} and {self.high:g}"
+        return "must be " + str(self).split(" ", 2)[2]  # "in [0, 1)"
+
+    def check(self, key: str, value, unit: str = "") -> None:
+        """Raise one line naming ``key`` when ``value`` breaks the rule."""
+        if value not in self:
+            raise MpeError(f"{key}: {self.requirement()}{f' {unit}' if unit else ''}, got {value}", key=key)
+
+
+@dataclass(frozen=True)
+class Choice:
+    """An option that takes one of a few names."""
+
+    names: tuple[str, ...]
+
+    def __contains__(self, value) -> bool:
+        return value in self.names
+
+    def __iter__(self):
+        return iter(self.names)
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __str__(self) -> str:
+        return "one of " + ", ".join(self.names)
+
+    def index(self, name: str) -> int:
+        return self.names.index(name)
+
+    def check(self, key: str, value) -> None:
+        """Raise one line naming ``key`` (and the nearest name) when ``value`` is not a choice."""
+        if value not in self.names:
+            raise MpeError(f"{key}: '{value}' is not one of {', '.join(self.names)}", key=key,
+                           hint=suggest(str(value), self.names))
+
+
+# The camera models of the reprojection objective (solvers.sfm.cameras), and
+# the choice a user has: one of them, or auto (the data decide).
+CAMERA_MODELS = Choice(("orthographic", "scaled", "perspective", "radial"))
+CAMERAS = Choice(("auto", *CAMERA_MODELS))
+# What reconstruct and pipeline=tracks minimise: bundle adjustment's
+# reprojection error, or the 3DMPE stress (paper Eq. 1) of the pixel distances.
+OBJECTIVES = Choice(("reprojection", "stress"))
+# The stress's losses, in the order of the kernels' loss codes, and the
+# reprojection error's (scipy's names).
+STRESS_LOSSES = Choice(("l2", "huber", "soft_l1"))
+REPROJECTION_LOSSES = Choice(("l2", "huber", "soft_l1", "cauchy"))
+# Where bundle adjustment starts: mpe3d's own start, or a Bundler/BAL file's.
+STARTS = Choice(("own", "file"))
+# A stress solver's starting point: the baseline (MDS), or uniform in the unit cube.
+INITS = Choice(("smart", "random"))
+# Given projections P^k, or estimated ones (the paper's two settings).
+PROJECTIONS = Choice(("fixed", "variable"))
