@@ -33,21 +33,45 @@ def _spin() -> float:
 
 
 def _spin_after(barrier, results) -> None:
+    arrived = time.monotonic()  # system-wide: comparable between processes
     barrier.wait()  # every process starts its loop at once
-    results.put(_spin())
+    seconds = _spin()
+    results.put((seconds, arrived, time.monotonic()))
+
+
+def spans(count: int) -> list[tuple[float, float, float]]:
+    """(loop seconds, arrival at the start line, end) of ``count`` processes
+    that run the loop at the same time. Each span holds the moment the start
+    line opened, so the spans overlap: the loops were timed side by side."""
+    context = multiprocessing.get_context("fork")
+    barrier, results = context.Barrier(count, timeout=120), context.Queue()
+    workers = [context.Process(target=_spin_after, args=(barrier, results)) for _ in range(count)]
+    for worker in workers:
+        worker.start()
+    out = [results.get(timeout=300) for _ in workers]
+    for worker in workers:
+        worker.join()
+    return out
 
 
 def at_once(count: int) -> float:
     """The slowest of ``count`` processes that run the loop at the same time."""
-    context = multiprocessing.get_context("fork")
-    barrier, results = context.Barrier(count), context.Queue()
-    workers = [context.Process(target=_spin_after, args=(barrier, results)) for _ in range(count)]
-    for worker in workers:
-        worker.start()
-    times = [results.get() for _ in workers]
-    for worker in workers:
-        worker.join()
-    return max(times)
+    return max(seconds for seconds, _, _ in spans(count))
+
+
+def pinned_share(repeats: int = 3) -> float | None:
+    """Two loops pinned to one CPU against one alone: about 2 (they share it).
+    None where CPU affinity is not offered."""
+    if not hasattr(os, "sched_setaffinity"):
+        return None
+    cpus = os.sched_getaffinity(0)
+    os.sched_setaffinity(0, {min(cpus)})  # the forked processes inherit it
+    try:
+        solo = min(at_once(1) for _ in range(repeats))
+        together = min(at_once(2) for _ in range(repeats))
+    finally:
+        os.sched_setaffinity(0, cpus)
+    return round(together / solo, 2)
 
 
 def cpu_name() -> str:
@@ -73,4 +97,5 @@ def describe(repeats: int = 3) -> dict:
 
 
 if __name__ == "__main__":
-    print(json.dumps({"benchmark": "machine", **describe()}))
+    # pinned_share checks the measurement itself: two loops on one CPU take about twice one
+    print(json.dumps({"benchmark": "machine", **describe(), "pinned_share": pinned_share()}))

@@ -98,7 +98,7 @@ def wrong_matches(frame: pd.DataFrame, share: float, seed: int = 0):
 
 def tracks_of(frame: pd.DataFrame):
     """The solver's tracks of ``frame`` and, for each row of it, its observation index."""
-    from mpe3d.harness.userdata.reconstruct import observations_from
+    from mpe3d.harness.userdata.observations import observations_from
     from mpe3d.solvers.sfm import bundle
 
     obs, _ = observations_from(views_of(frame))

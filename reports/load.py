@@ -63,7 +63,7 @@ def runs(tracker, experiment: str, hashes=None) -> pd.DataFrame:
     frame["method"] = [method_label(s, v) for s, v in zip(frame["solver.name"], variants)]
     for name in frame["pipeline"].unique():  # a pipeline may name its runs otherwise (COLMAP, bundle)
         rows = frame["pipeline"] == name
-        named = [pipeline(name).method(row) for row in frame[rows].to_dict("records")]
+        named = [pipeline(name).method_name(row) for row in frame[rows].to_dict("records")]
         frame.loc[rows, "method"] = [m if m is not None else old for m, old in zip(named, frame.loc[rows, "method"])]
     return frame.reset_index(drop=True)
 

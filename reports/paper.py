@@ -25,7 +25,7 @@ METRICS = [CD, EMD, ROA]
 
 
 def _allmetrics(table: str):
-    def render(frame: pd.DataFrame, report: Report) -> None:
+    def write(frame: pd.DataFrame, report: Report) -> None:
         paper = published(table)
         dataset = paper["dataset"].iloc[0] if len(paper) else "paper"
         for m in sorted(frame["visibility.min_views"].unique()):
@@ -38,7 +38,7 @@ def _allmetrics(table: str):
                          f"(100 × mean distance). Columns marked 'published, {dataset}' are the "
                          "paper's numbers on its own data, not measured here; the rest come from "
                          "our runs on the bundled stand-in meshes. F/V: fixed/variable projections.")
-    return render
+    return write
 
 
 def _smart_init(frame: pd.DataFrame, report: Report) -> None:
@@ -51,7 +51,7 @@ def _smart_init(frame: pd.DataFrame, report: Report) -> None:
 
 
 def _noise(kind: str):
-    def render(frame: pd.DataFrame, report: Report) -> None:
+    def write(frame: pd.DataFrame, report: Report) -> None:
         name = f"noise_{kind}"
         report.figure(figures.line_figure(frame, "noise.fraction", [CD], panels="noise.amplitude",
                                           x_scale=100, xlabel="corrupted points q (%)"), name,
@@ -60,18 +60,18 @@ def _noise(kind: str):
                       "mean over shapes and repeats.")
         report.table(tables.summary(frame, ["noise.amplitude", "noise.fraction", "method"], METRICS),
                      name, f"The numbers behind Fig. {name}.")
-    return render
+    return write
 
 
 def _sweep_of(x: str, name: str, caption: str, logx: bool = False):
-    def render(frame: pd.DataFrame, report: Report) -> None:
+    def write(frame: pd.DataFrame, report: Report) -> None:
         report.figure(figures.line_figure(frame, x, ["runtime_s"], logx=logx), f"{name}_runtime",
                       f"Runtime against {caption} (Fig. viewpoints_runtime).")
         report.figure(figures.line_figure(frame, x, METRICS, logx=logx), f"{name}_metrics",
                       f"CD, EMD and ROA against {caption}.")
         report.table(tables.summary(frame, ["projections", x, "method"], [*METRICS, "runtime_s"]),
                      name, f"The numbers behind the {name} figures.")
-    return render
+    return write
 
 
 def _visibility(frame: pd.DataFrame, report: Report) -> None:
@@ -133,7 +133,7 @@ def _colmap(frame: pd.DataFrame, report: Report) -> None:
 class Experiment:
     name: str  # the sweep's name, i.e. the MLflow experiment
     title: str
-    render: Callable[[pd.DataFrame, Report], None]
+    write: Callable[[pd.DataFrame, Report], None]  # its tables and figures into the report
 
 
 RECIPE = (
@@ -260,7 +260,7 @@ def code_note(frame: pd.DataFrame, current: str) -> tuple[str, str]:
             f"Mixes runs of {len(ours)} code versions (see the section text).")
 
 
-def render_section(report: Report, section: Section) -> None:
+def write_section(report: Report, section: Section) -> None:
     report.current = section.name
     experiment = BY_NAME.get(section.name)
     report.heading(experiment.title if experiment else section.name)
@@ -279,9 +279,9 @@ def render_section(report: Report, section: Section) -> None:
     if rows.empty:
         report.text("No finished runs yet: nothing to show.")
     elif experiment:
-        experiment.render(rows, report)
+        experiment.write(rows, report)
     elif "pipeline" in rows and (rows["pipeline"] == "tracks").all():
-        tracks.render(rows, report, list(section.varying))
+        tracks.write_section(rows, report, list(section.varying))
     else:
         _generic(rows, report, list(section.varying))
     report.note = ""
@@ -323,7 +323,7 @@ def write(out: Path, sections: list[Section], title: str, facts: list[str] | Non
                             *claim_lines(checked))
         report.note = ""
     for section in sections:
-        render_section(report, section)
+        write_section(report, section)
     report.text(f"Rendered in {time.perf_counter() - start:.1f} s.")
     report.write_index()
     return report

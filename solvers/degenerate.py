@@ -36,7 +36,7 @@ class DegenerateWarning(UserWarning):
         self.template, self.ids = template, ids
         super().__init__(template.format(ids=_ids(np.asarray(ids))) if ids is not None else template)
 
-    def render(self, labels=None) -> str:
+    def text(self, labels=None) -> str:
         if self.ids is None or labels is None:
             return str(self)
         return self.template.format(ids=_ids(np.asarray(labels)[np.asarray(self.ids)]))
@@ -59,7 +59,7 @@ def collect_notes(labels=None) -> Iterator[list[str]]:
         yield notes
     for w in caught:
         if issubclass(w.category, DegenerateWarning):
-            notes.append(w.message.render(labels) if isinstance(w.message, DegenerateWarning)
+            notes.append(w.message.text(labels) if isinstance(w.message, DegenerateWarning)
                          else str(w.message))
         else:
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)

@@ -86,7 +86,7 @@ def _gauss_newton_step(x, P, Y, d, root):
 
 
 @njit(cache=True, nogil=True)
-def multilaterate(x, P, Y, d, root, steps):
+def _multilaterate(x, P, Y, d, root, steps):
     """The point whose projected distances to anchors fit ``d``: Gauss-Newton
     from x on sum_t root_t^2 (d_t - ||P_t x - Y_t||)^2, ending when a step is
     below 1e-9 of the point's size. P: (m, 2, 3), Y: (m, 2), d and root: (m,)."""
@@ -167,7 +167,7 @@ def place_point(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps):
         for b in range(a + 1, n_rows):
             pair = np.concatenate((np.arange(few_starts[a], few_starts[a + 1]),
                                    np.arange(few_starts[b], few_starts[b + 1])))
-            placed = multilaterate(x, fP[pair], fY[pair], fd[pair], np.ones(pair.shape[0]), steps)
+            placed = _multilaterate(x, fP[pair], fY[pair], fd[pair], np.ones(pair.shape[0]), steps)
             cost = pairwise_sum(np.minimum(row_misfits(placed, fP, fY, fd, few_starts), line))
             if cost < best_cost:
                 best, best_cost = placed, cost
@@ -177,7 +177,7 @@ def place_point(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps):
         root = np.empty(ud.shape[0])
         for r in range(n_rows):
             root[ustarts[r]:ustarts[r + 1]] = np.sqrt(1.0 / (spread[r] * spread[r]))
-        best = multilaterate(best, uP, uY, ud, root, steps)
+        best = _multilaterate(best, uP, uY, ud, root, steps)
     return best
 
 

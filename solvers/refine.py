@@ -23,7 +23,7 @@ from mpe3d.solvers.stress import Stress
 _HUBER_K = 1.345
 # Stress / sum of squared distances below which the start is exact: RMS relative
 # residuals of 1e-9, the precision of the per-view Lanczos MDS.
-_EXACT = 1e-18
+_EXACT_STRESS = 1e-18
 # Above this relative stress after descent the views are noisy, and refine also
 # descends from the paper's smart (MDS) start, keeping the lower objective.
 _NOISY = 1e-10
@@ -172,7 +172,7 @@ def solve_refine(observations: Observations, *, random_state=None,
     # loss's quadratic zone: its robust objective is its stress, and it is kept.
     plain = Stress(observations)  # Eq. 1 itself, whatever the loss
     total = plain.target_energy()
-    exact_start = start.stress <= _EXACT * total
+    exact_start = start.stress <= _EXACT_STRESS * total
     if loss != "l2":
         spread = 0.0 if exact_start else plain.residual_spread(X0, P0, rng)
         scale = max(_HUBER_K * spread, 1e-12 * radius)  # noise-free: residuals are ~0
@@ -336,7 +336,7 @@ def _descend(observations: Observations, stress: Stress, X0: np.ndarray, P0: np.
     start = f(theta0) if f0 is None else None
     f0 = start[0] if f0 is None else f0
     history = [f0]
-    if f0 <= _EXACT * total:  # residuals at rounding level
+    if f0 <= _EXACT_STRESS * total:  # residuals at rounding level
         theta, value, iterations = theta0, f0, 0
         termination = "start already exact (relative stress below 1e-18)"
     else:

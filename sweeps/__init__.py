@@ -2,12 +2,16 @@
 
 They are package data, so an installed mpe3d finds them without the
 repository (``mpe3d reproduce-paper`` runs the paper's).
+
+May import: nothing of mpe3d.
 """
 
 from __future__ import annotations
 
 from importlib.resources import files
 from pathlib import Path
+
+__all__ = ["paper_sweeps"]
 
 
 def paper_sweeps() -> list[Path]:

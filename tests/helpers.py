@@ -220,3 +220,20 @@ def scaled_track_set(folder, n_points=60, n_views=5, seed=3):
     pd.DataFrame({"id": range(n_points), "x": X[:, 0], "y": X[:, 1], "z": X[:, 2]}).to_csv(
         folder / "points.csv", index=False)
     return X
+
+
+def similarity_residuals(X, truth, mirror: bool = False) -> np.ndarray:
+    """Each point's distance to its true position after the best similarity
+    (:func:`mpe3d.harness.scene.metrics.similarity_transform`, Umeyama's):
+    the one alignment of the tests. ``mirror`` allows a reflection, for the
+    cameras that cannot tell a shape from its mirror image (orthographic)."""
+    from mpe3d.harness.scene.metrics import similarity_transform
+
+    X, truth = np.asarray(X, dtype=float), np.asarray(truth, dtype=float)
+    s, Q, t = similarity_transform(X, truth, mirror=mirror)
+    return np.linalg.norm(s * X @ Q.T + t - truth, axis=1)
+
+
+def similarity_rms(X, truth, mirror: bool = False) -> float:
+    """The RMS of :func:`similarity_residuals`."""
+    return float(np.sqrt(np.mean(similarity_residuals(X, truth, mirror) ** 2)))

@@ -1,8 +1,6 @@
 """benchmarks/machine.py: the description a timing is printed with."""
 import os
 
-import pytest
-
 from tests.helpers import load_script
 
 
@@ -17,16 +15,11 @@ def test_the_description_names_the_cpu_and_times_the_loop_both_ways():
     assert line["parallel_share"] == round(line["solo_s"] / line["all_at_once_s"], 2)
 
 
-@pytest.mark.skipif(not hasattr(os, "sched_setaffinity"), reason="needs CPU affinity (Linux)")
-def test_two_processes_on_one_core_are_seen_sharing_it():
-    """The loops really run at once: pinned to one CPU, two of them take about
-    twice as long as one (were they run one after the other, as long)."""
-    machine = _machine()
-    cpus = os.sched_getaffinity(0)
-    os.sched_setaffinity(0, {min(cpus)})  # the forked processes inherit it
-    try:
-        solo = min(machine.at_once(1) for _ in range(3))
-        together = min(machine.at_once(2) for _ in range(2))
-    finally:
-        os.sched_setaffinity(0, cpus)
-    assert together > 1.5 * solo, (solo, together)
+def test_the_loops_timed_at_once_run_side_by_side():
+    """Every process's span (arrival at the start line to the end of its loop)
+    holds the moment the line opened, so all spans overlap: the loops ran at
+    once, whatever the load. How much they slow each other is a measurement,
+    not a test (``python benchmarks/machine.py`` prints ``pinned_share``)."""
+    spans = _machine().spans(3)
+    assert len(spans) == 3 and all(seconds > 0 for seconds, _, _ in spans)
+    assert max(arrived for _, arrived, _ in spans) < min(end for _, _, end in spans)

@@ -99,7 +99,8 @@ def _fed_to(method: str, views: list[dict], principal_point, pinhole: bool = Fal
     rejection rounds would chase that misfit's tail round after round (each
     at its iteration cap) instead of wrong matches, which the pinhole's fit
     has already dealt with: they are turned off (``outlier_threshold=inf``)."""
-    from mpe3d.harness.userdata.reconstruct import Problem, observations_from, solve_problem
+    from mpe3d.harness.userdata.observations import observations_from
+    from mpe3d.harness.userdata.reconstruct import Problem, solve_problem
 
     observations, ids = observations_from(views)
     names = [str(view.get("name", k)) for k, view in enumerate(views)]
@@ -225,7 +226,7 @@ def run(config: RunConfig, streams) -> RunResult:
                      aligned=cloud, facts=facts)
 
 
-def method(config) -> str:
+def method_name(config) -> str:
     """The photos' pipeline: COLMAP reconstructs, no solver of ours."""
     return "COLMAP"
 

@@ -30,7 +30,7 @@ from mpe3d.solvers.base import SolverSpec
 
 SCENE = {"shape": "torus", "points": 60, "views": 5, "visibility.k": 3}
 ORTHONORMAL = 1e-6  # |P P^T - I| at most
-EXACT = 1e-6  # ROA on a noise-free scene, as a share of its diameter
+EXACT_ROA = 1e-6  # ROA on a noise-free scene, as a share of its diameter
 SAME_STRESS = 1e-6  # relative: a reported stress against Eq. 1 of the result
 # Two runs with one seed agree to this share of the cloud's extent: BLAS may
 # round differently with the memory alignment of its arrays, which no seed fixes.
@@ -239,7 +239,7 @@ def _exact(spec: SolverSpec, scene, obs: Observations, seed: int) -> Check:
     error = float(np.sqrt(np.mean(np.sum((align_rigid(rec.points, truth) - truth) ** 2, axis=1))))
     diameter = float(np.linalg.norm(truth.max(axis=0) - truth.min(axis=0)))
     name = f"exact ({'fixed' if obs.fixed else 'variable'})"
-    if error > EXACT * diameter:
+    if error > EXACT_ROA * diameter:
         return Check(name, False, f"it claims exact=True but misses a noise-free scene by "
                      f"{error / diameter:.2g} of its diameter: fix it, or register it without exact")
     return Check(name, True)

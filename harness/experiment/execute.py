@@ -159,7 +159,7 @@ def write_outputs(result: RunResult, out: Path) -> list[Path]:
     """ground_truth.ply, reconstruction.ply (aligned) and a PNG comparing them."""
     import trimesh
 
-    from mpe3d.harness.experiment.pictures import render_comparison
+    from mpe3d.harness.experiment.pictures import draw_comparison
 
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / "ground_truth.ply", out / "reconstruction.ply", out / "comparison.png"]
@@ -167,5 +167,5 @@ def write_outputs(result: RunResult, out: Path) -> list[Path]:
     if not len(result.aligned):  # COLMAP made no model: nothing to compare
         return paths[:1]
     trimesh.PointCloud(result.aligned).export(paths[1])
-    render_comparison(result.scene.points, result.aligned, paths[2], title=_title(result))
+    draw_comparison(result.scene.points, result.aligned, paths[2], title=_title(result))
     return paths

@@ -7,8 +7,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-# Three orthogonal views, each named by the axes it shows and the one it looks along.
-VIEWS = (("front (x, y; looking along z)", 0, 1), ("top (x, z; looking along y)", 0, 2),
+# Three orthogonal panels (matplotlib axes), each named by the axes it shows and the one it looks along.
+PANELS = (("front (x, y; looking along z)", 0, 1), ("top (x, z; looking along y)", 0, 2),
          ("side (z, y; looking along x)", 2, 1))
 # Edges of the face's colour and no width look like no edges, and they let Agg
 # stamp one rasterised marker per point (draw_markers) instead of filling each
@@ -19,10 +19,10 @@ OURS_STYLE = dict(s=1.5, c="#b2182b", edgecolors="#b2182b", linewidths=0,
                   label="reconstruction (aligned)")
 
 
-def render_comparison(truth: np.ndarray, reconstruction: np.ndarray, path: Path | BinaryIO,
-                      title: str = "", dpi: int = 110) -> Path | BinaryIO:
+def draw_comparison(truth: np.ndarray, reconstruction: np.ndarray, path: Path | BinaryIO,
+                    title: str = "", dpi: int = 110) -> Path | BinaryIO:
     """Ground truth against the aligned reconstruction in three labelled
-    orthogonal views: the truth as wide pale discs, ours as small dark dots
+    orthogonal panels: the truth as wide pale discs, ours as small dark dots
     on top, so that where they coincide both stay visible."""
     from PIL import Image
 
@@ -31,7 +31,7 @@ def render_comparison(truth: np.ndarray, reconstruction: np.ndarray, path: Path 
     both = np.vstack([truth, reconstruction])
     lo, hi = both.min(axis=0), both.max(axis=0)
     centre, half = (lo + hi) / 2, max((hi - lo).max() / 2, 1e-12) * 1.05
-    for ax, (_, a, b), (pale, dark) in zip(figure["axes"], VIEWS, figure["dots"]):
+    for ax, (_, a, b), (pale, dark) in zip(figure["axes"], PANELS, figure["dots"]):
         pale.set_offsets(truth[:, [a, b]])
         dark.set_offsets(reconstruction[:, [a, b]])
         ax.set_xlim(centre[a] - half, centre[a] + half)
@@ -74,7 +74,7 @@ def _comparison_figure() -> dict:
     # before stamping it, and the circle's Bezier curves took 1.1 ms of root
     # finding a scatter (6 a picture); 4 pixels wide, a 16-gon is a disc
     disc = Path.unit_regular_polygon(16)
-    for ax, (name, a, b) in zip(axes, VIEWS):
+    for ax, (name, a, b) in zip(axes, PANELS):
         dots.append((ax.scatter(none[:, 0], none[:, 1], marker=disc, **TRUTH_STYLE),
                      ax.scatter(none[:, 0], none[:, 1], marker=disc, **OURS_STYLE)))
         ax.set_aspect("equal")
@@ -107,9 +107,9 @@ def _background(figure: dict, dpi: int):
 
 
 def comparison_png(truth: np.ndarray, reconstruction: np.ndarray, title: str = "") -> bytes:
-    """:func:`render_comparison` as PNG bytes, small enough to keep with every run."""
+    """:func:`draw_comparison` as PNG bytes, small enough to keep with every run."""
     import io
 
     buffer = io.BytesIO()
-    render_comparison(truth, reconstruction, buffer, title, dpi=72)
+    draw_comparison(truth, reconstruction, buffer, title, dpi=72)
     return buffer.getvalue()

@@ -33,7 +33,7 @@ def run(config: RunConfig, streams) -> RunResult:
                      aligned=aligned, facts=facts)
 
 
-def method(config) -> None:
+def method_name(config) -> None:
     """A points run is named by its solver."""
     return None
 

@@ -61,7 +61,7 @@ class Pipeline(Protocol):
     def describe(self, summary: dict[str, Any]) -> list[str]:
         """The lines ``mpe3d run`` prints of :meth:`RunResult.summary`."""
 
-    def method(self, config: Mapping[str, Any]) -> str | None:
+    def method_name(self, config: Mapping[str, Any]) -> str | None:
         """The method a run of ``config`` is named by in tables and figures;
         None: its solver's (the reports label the paper's solvers)."""
 

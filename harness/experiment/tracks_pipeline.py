@@ -249,7 +249,7 @@ def run(config: RunConfig, streams) -> RunResult:
                      aligned=aligned, facts=facts)
 
 
-def method(config) -> str:
+def method_name(config) -> str:
     """How a tracks run is named in tables: bundle adjustment with its camera, or the stress solver."""
     if config["tracks.objective"] == "stress":
         return f"stress ({config['solver.name']})"
@@ -259,7 +259,7 @@ def method(config) -> str:
 def title(result: RunResult) -> str:
     error = result.metrics.get("error_3d_median_pct")
     shown = f"  3D error {error:.3g} %" if error is not None else ""
-    return f"{result.config['tracks.path']}  {method(result.config)}{shown}"
+    return f"{result.config['tracks.path']}  {method_name(result.config)}{shown}"
 
 
 def describe(summary: dict[str, Any]) -> list[str]:
@@ -267,7 +267,7 @@ def describe(summary: dict[str, Any]) -> list[str]:
     lines = [f"tracks {tracks['path']}: {summary['views_kept']} views, {summary['tracks']} tracks, "
              f"{summary['observations']} observations ({summary['removed']} removed, "
              f"{summary['wrong']} wrong, noise {tracks['noise_px']} px), seed {summary['config']['seed']}",
-             f"{method(flatten(summary['config']))}: reprojection RMS {short_number(summary['rms_px'])} px "
+             f"{method_name(flatten(summary['config']))}: reprojection RMS {short_number(summary['rms_px'])} px "
              f"kept, {short_number(summary['rms_px_all'])} px all, {short_number(summary['rms_px_clean'])} "
              f"px on the clean observations; {summary['dropped']} dropped ({summary['caught']} of "
              f"them wrong), {summary['unplaced']} unplaced"]

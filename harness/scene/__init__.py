@@ -6,7 +6,9 @@ to :class:`mpe3d.solvers.Observations`), the metrics that score a
 reconstruction against the ground truth (CD, EMD, ROA) and ray-traced photos
 for the colmap experiment.
 
-May import: :mod:`mpe3d.solvers` (its public types) and :mod:`mpe3d.errors`.
-Nothing else of the harness: a scene is built from a run's keys, whoever
-holds them.
+May import: :mod:`mpe3d.solvers` (its public types), :mod:`mpe3d.plugins`
+(datasets from plug-ins) and :mod:`mpe3d.errors`. Nothing else of the
+harness: a scene is built from a run's keys, whoever holds them.
 """
+
+__all__ = ["metrics", "noise", "observe", "photos", "shapes", "viewpoints", "visibility"]

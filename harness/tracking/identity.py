@@ -38,7 +38,7 @@ from mpe3d.harness.files import cache_folder
 
 PACKAGE = "mpe3d"
 RUN_ENTRY = "mpe3d.harness.experiment.execute"  # where a worker starts a run: every pipeline is below it
-SOLVERS = "mpe3d.solvers"
+SOLVERS_PACKAGE = "mpe3d.solvers"
 _IGNORED_FIELDS = {"ctx", "type_comment", "kind"}
 
 
@@ -196,8 +196,8 @@ def _with_packages(names: set[str]) -> set[str]:
 
 
 def _solver_modules() -> set[str]:
-    root = module_file(SOLVERS).parent
-    return {SOLVERS + "".join("." + part for part in p.relative_to(root).with_suffix("").parts
+    root = module_file(SOLVERS_PACKAGE).parent
+    return {SOLVERS_PACKAGE + "".join("." + part for part in p.relative_to(root).with_suffix("").parts
                               if part != "__init__")
             for p in root.rglob("*.py")}
 

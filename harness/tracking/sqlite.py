@@ -29,14 +29,36 @@ def _file_lock(path: Path) -> Iterator[None]:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
 
-def open_sqlite(uri: str, database: Path):
-    """A client on a SQLite store, creating the store if needed.
+def read_only(database: Path) -> bool:
+    """Whether an existing store cannot be written where it lies (a read-only
+    mount, a folder or file the user may not write)."""
+    return database.is_file() and not (os.access(database.parent, os.W_OK) and os.access(database, os.W_OK))
+
+
+def read_only_uri(database: Path) -> str:
+    """The SQLAlchemy URI that opens ``database`` for reading only: SQLite
+    neither writes nor locks it, nor makes its WAL side files."""
+    from urllib.parse import quote
+
+    return f"sqlite:///file:{quote(str(database.resolve()))}?mode=ro&immutable=1&uri=true"
+
+
+def open_sqlite(uri: str, database: Path, create: bool = True):
+    """A client on a SQLite store, creating the store if needed (``create``).
 
     Two processes creating one store at once would both run MLflow's schema
     migrations ("table experiments already exists"), so creation happens
     under a lock file beside the database. A new store is put in WAL mode:
-    readers then never block the writers of a concurrent sweep.
+    readers then never block the writers of a concurrent sweep. A store that
+    is only read (not ``create``) where it cannot be written is opened
+    read-only, with no lock: a command that writes refuses it in one line.
     """
+    if not create and read_only(database):
+        from mlflow.tracking import MlflowClient
+
+        client = MlflowClient(tracking_uri=read_only_uri(database))
+        client.search_experiments(max_results=1)
+        return client
 
     lock = database.with_name(database.name + ".lock")
     made = _not_yet(database, lock)

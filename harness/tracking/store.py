@@ -40,11 +40,18 @@ from mpe3d.harness.tracking.connection import (
 )
 from mpe3d.harness.tracking.identity import code_identity
 from mpe3d.harness.tracking.results import CHART_STEPS, Results, chart_steps
-from mpe3d.harness.tracking.sqlite import open_sqlite, store_template
+from mpe3d.harness.tracking.sqlite import open_sqlite, read_only, read_only_uri, store_template
 
 __all__ = ["CHART_STEPS", "CLAIM_TAG", "CODE_TAG", "DEFAULT_URI", "ERROR_TAG", "HASH_TAG", "HEARTBEAT_TAG",
            "OWNER_TAG", "PARENT_TAG", "STATUS_RANK", "UNRECORDED", "Tracked", "Tracker", "artifact_root",
-           "chart_steps", "claim_key", "resolve_uri", "store_template"]
+           "chart_steps", "claim_key", "resolve_uri", "serving_uri", "store_template"]
+
+
+def serving_uri(uri: str) -> str:
+    """The URI a reader (the MLflow UI) opens ``uri``'s store by: a SQLite
+    store that cannot be written where it lies opens read-only."""
+    path = database_path(uri)
+    return read_only_uri(Path(path)) if path and read_only(Path(path)) else uri
 
 
 class Tracker(Claims, Results):
@@ -73,7 +80,7 @@ class Tracker(Claims, Results):
         self.artifact_uris: dict[str, str] = {}
 
         with store_errors(self.uri, "open it"):
-            self.client = open_sqlite(self.uri, database) if database is not None \
+            self.client = open_sqlite(self.uri, database, create) if database is not None \
                 else MlflowClient(tracking_uri=self.uri)
 
     def local_folders(self) -> list[Path]:

@@ -1,11 +1,17 @@
 """A user's own data: view files in, a reconstruction and its report out.
 
 :mod:`.formats` reads and writes views, projections and clouds;
+:mod:`.observations` checks the views and makes them observations;
 :mod:`.reconstruct` is the validated front door (``mpe3d reconstruct`` and
 :func:`mpe3d.reconstruct`), returning a typed result; :mod:`.colmap_model`
 reads and writes COLMAP sparse models.
 
-May import: :mod:`mpe3d.solvers` (the SfM stack included), :mod:`mpe3d.errors`,
-:mod:`mpe3d.harness.files` and the code identity of
+Readers of other tools' files: :mod:`.bundler` (Bundler and BAL),
+:mod:`.vgg` (VGG's nview-corners tables).
+
+May import: :mod:`mpe3d.solvers` (the SfM stack included), :mod:`mpe3d.options`,
+:mod:`mpe3d.errors`, :mod:`mpe3d.harness.files` and the code identity of
 :mod:`mpe3d.harness.tracking.identity` (a report says which code made it).
 """
+
+__all__ = ["bundler", "colmap_model", "formats", "observations", "reconstruct", "vgg"]

@@ -3,9 +3,16 @@
 Camera models (:mod:`.cameras`), observations as flat tracks
 (:mod:`.tracks`), two-view checks (:mod:`.epipolar`), triangulation,
 Levenberg-Marquardt with the points eliminated (:mod:`.adjust`), the
-incremental start (:mod:`.incremental`) and the whole pipeline
-(:mod:`.bundle`, what ``objective="reprojection"`` runs).
+incremental start (:mod:`.incremental`), what a fit rests on
+(:mod:`.support`), the camera models' starts and fits (:mod:`.camera_fits`),
+the rounds of wrong matches (:mod:`.outliers`) and the whole pipeline
+(:mod:`.bundle`, what ``objective="reprojection"`` runs). Its compiled
+kernels sit beside them: :mod:`.kernels` (bundle adjustment's) and
+:mod:`.epipolar_kernels` (the two-view tests').
 
-May import: the stress side of :mod:`mpe3d.solvers` (its public names) and
-:mod:`mpe3d.errors`. The stress side never imports this package.
+May import: the stress side of :mod:`mpe3d.solvers`, :mod:`mpe3d.options`
+and :mod:`mpe3d.errors`. The stress side never imports this package.
 """
+
+__all__ = ["adjust", "bundle", "camera_fits", "cameras", "epipolar", "epipolar_kernels", "incremental",
+           "kernels", "outliers", "support", "tracks", "triangulation"]

@@ -18,7 +18,7 @@ from mpe3d.solvers import threads
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
 from mpe3d.solvers.sfm.kernels import reduced_system, transposed_products, whitened_blocks
-from mpe3d.solvers.sfm.tracks import EXACT, Tracks, image_size, rms
+from mpe3d.solvers.sfm.tracks import EXACT_RMS, Tracks, image_size, rms
 
 
 class Fit(NamedTuple):
@@ -137,7 +137,7 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     if not np.isfinite(cost) or not np.all(np.isfinite(X)):  # e.g. a point behind a camera
         return Fit(X, cameras, np.array([np.inf]), False)
     history, converged, nu = [rms(r)], False, 2.0
-    if history[0] <= EXACT * image_size(tracks):  # exact already: nothing to descend
+    if history[0] <= EXACT_RMS * image_size(tracks):  # exact already: nothing to descend
         return Fit(X, cameras, np.array(history), True)
     for _ in range(max_iter):
         d_x, d_view, d_shared = cameras.jacobian_blocks(X, view, point)

@@ -25,7 +25,7 @@ Perspective views are near-affine over two views at a time, and the
 threshold is in robust sigmas of each pair's own residuals, so their misfit
 is rarely flagged (and a flag is only a suspicion: the fit takes back what
 it explains); a wrong match along its epipolar line escapes, and is left to
-the peeling after the fit (:func:`.bundle._without_outliers`).
+the peeling after the fit (:func:`.outliers.without_outliers`).
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ from mpe3d.errors import MpeError
 from mpe3d.solvers.base import Observations
 from mpe3d.solvers.linalg import stacked
 
-EXACT = 1e-12  # an RMS below this share of the image is exact: no model can do better
+EXACT_RMS = 1e-12  # an RMS below this share of the image is exact: no model can do better
 
 
 # Rayleigh: the median of ||r|| for isotropic Gaussian 2D residuals of std sigma.

@@ -15,7 +15,7 @@ from tests.helpers import scene_and_observations
 
 # Noise-free, both solvers are exact up to the Lanczos MDS of each view
 # (~1e-10 relative); 1e-8 leaves two orders of margin.
-EXACT = 1e-8
+EXACT_ROA = 1e-8
 
 
 def roa_on_placed(scene, rec):
@@ -35,7 +35,7 @@ def test_noise_free_is_exact(solver, setting, shape, seed, visibility):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", DegenerateWarning)  # raytracing hides some points
         rec = solvers.solve(solver, obs, random_state=seed)
-    assert roa_on_placed(scene, rec) < EXACT
+    assert roa_on_placed(scene, rec) < EXACT_ROA
     assert np.allclose(rec.projections @ rec.projections.transpose(0, 2, 1), np.eye(2), atol=1e-12)
 
 
@@ -45,7 +45,7 @@ def test_coordinates_skip_mds_and_stay_exact(setting):
                                            observe="coordinates")
     assert all(v.distances is None and v.coordinates.shape == (v.size, 2) for v in obs.views)
     for solver in ("factorize", "refine"):
-        assert roa_on_placed(scene, solvers.solve(solver, obs, random_state=0)) < EXACT
+        assert roa_on_placed(scene, solvers.solve(solver, obs, random_state=0)) < EXACT_ROA
 
 
 def test_robust_loss_beats_plain_under_distance_noise():

@@ -63,7 +63,7 @@ def test_multilateration_matches_numpy_gauss_newton(rng):
     d = np.linalg.norm(np.einsum("nij,j->ni", P, point) - Y, axis=1) + 0.01 * rng.normal(size=120)
     root = rng.uniform(0.5, 2.0, size=120)
     start = point + 0.3 * rng.normal(size=3)
-    got = point_kernels.multilaterate(start, P, Y, d, root, 10)
+    got = point_kernels._multilaterate(start, P, Y, d, root, 10)
     assert np.allclose(got, _gauss_newton(start, P, Y, d, root, 10), atol=1e-12)
     starts = np.array([0, 40, 80, 120])
     misfit = np.abs(d - np.linalg.norm(np.einsum("nij,j->ni", P, got) - Y, axis=1))
@@ -83,7 +83,7 @@ def test_multilateration_in_one_view_falls_back_to_least_squares(rng):
     d = np.linalg.norm(np.einsum("nij,j->ni", P, point) - Y, axis=1)
     start = point + 0.2 * rng.normal(size=3)
     root = np.ones(50)
-    got = point_kernels.multilaterate(start, P, Y, d, root, 10)
+    got = point_kernels._multilaterate(start, P, Y, d, root, 10)
     assert np.allclose(got, _gauss_newton(start, P, Y, d, root, 10), atol=1e-10)
 
 
@@ -108,7 +108,7 @@ def _placed_by_numpy(x, P, Y, d, starts, line, sigmas, scouts, reweights, steps)
     def placed(x, stacked, weights=None):
         P, Y, d, starts = stacked
         root = np.ones(len(d)) if weights is None else np.repeat(np.sqrt(weights), np.diff(starts))
-        return point_kernels.multilaterate(x, P, Y, d, root, steps)
+        return point_kernels._multilaterate(x, P, Y, d, root, steps)
 
     scout_rows = [tuple(a[::-(-len(r[2]) // scouts)] for a in r) for r in rows]
     few = stack(scout_rows)

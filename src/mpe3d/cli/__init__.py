@@ -8,7 +8,8 @@ One module per command or command family, each with its parser
 several commands share, :mod:`.main` the argparse tree and the entry point.
 
 May import: :mod:`mpe3d.reports`, :mod:`mpe3d.harness`, :mod:`mpe3d.solvers`,
-:mod:`mpe3d.plugins` and :mod:`mpe3d.errors`. Nothing imports it.
+:mod:`mpe3d.sweeps`, :mod:`mpe3d.plugins`, :mod:`mpe3d.options` and
+:mod:`mpe3d.errors`. Nothing imports it.
 """
 
 from mpe3d.cli.main import build_parser, console, main

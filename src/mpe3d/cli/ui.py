@@ -19,7 +19,7 @@ def add_parser(sub) -> None:
 
 
 def cmd_ui(args) -> int:
-    from mpe3d.harness.tracking.store import artifact_root, resolve_uri
+    from mpe3d.harness.tracking.store import artifact_root, resolve_uri, serving_uri
 
     uri = resolve_uri(args.tracking_uri)
     if uri.startswith(("http://", "https://")):
@@ -27,7 +27,7 @@ def cmd_ui(args) -> int:
     with socket.socket() as probe:
         if probe.connect_ex(("127.0.0.1", args.port)) == 0:
             raise MpeError(f"--port: 127.0.0.1:{args.port} is in use; choose another port")
-    command = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", uri,
+    command = [sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", serving_uri(uri),
                "--host", "127.0.0.1", "--port", str(args.port), "--workers", "1"]  # one user
     root = artifact_root(uri)
     if root:

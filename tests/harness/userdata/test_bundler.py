@@ -8,6 +8,7 @@ from mpe3d.errors import MpeError
 from mpe3d.harness.userdata.bundler import read_bundle_file, write_bal, write_bundler
 from mpe3d.harness.userdata.reconstruct import prepare
 from mpe3d.solvers.sfm.cameras import exp_so3, radial_cameras
+from tests.helpers import similarity_residuals
 
 K, N = 6, 80
 WRITERS = {"bal": write_bal, "bundler": write_bundler}
@@ -40,11 +41,7 @@ def _write(kind, path, p, rng, exact_start=False):
 
 def _similarity_error(X, truth):
     """Largest distance after the best similarity, relative to the cloud's extent."""
-    a, b = X - X.mean(0), truth - truth.mean(0)
-    U, S, Vt = np.linalg.svd(a.T @ b)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    fitted = (np.sum(S * np.diag(D)) / np.sum(a ** 2)) * a @ (U @ D @ Vt)
-    return float(np.abs(fitted - b).max() / np.ptp(truth, axis=0).max())
+    return float(similarity_residuals(X, truth).max() / np.ptp(truth, axis=0).max())
 
 
 @pytest.mark.parametrize("kind", ["bal", "bundler"])

@@ -11,7 +11,7 @@ from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.userdata import colmap_model
 from mpe3d.harness.userdata.reconstruct import ViewCamera, reconstruct
 from mpe3d.reports.claims import FAILS, HOLDS, colmap_fails_below
-from tests.helpers import close_up_keypoints
+from tests.helpers import close_up_keypoints, similarity_rms
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -73,8 +73,7 @@ def _synthetic_model(folder, rng, n=300, views=8):
 
 
 def _similarity_rms(X, Y):
-    s, Q, t = metrics.similarity_transform(X, Y)
-    return float(np.sqrt(np.mean(np.sum((s * X @ Q.T + t - Y) ** 2, axis=1))))
+    return similarity_rms(X, Y)
 
 
 def _model_points(folder):

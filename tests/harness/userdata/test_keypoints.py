@@ -11,7 +11,7 @@ from mpe3d.errors import MpeError
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.cameras import exp_so3
-from tests.helpers import SHARED
+from tests.helpers import SHARED, similarity_rms
 
 REAL = SHARED / "realdata"
 needs_realdata = pytest.mark.skipif(not (REAL / "house").is_dir(),
@@ -36,9 +36,7 @@ def _pinhole_views(rng, n=80, k=6, focal=800.0):
 
 
 def _similarity_rms(A, B):
-    a, b = A - A.mean(0), B - B.mean(0)
-    U, S, Vt = np.linalg.svd(a.T @ b)
-    return np.sqrt(np.mean(np.sum((S.sum() / np.sum(a ** 2)) * a @ (U @ Vt) - b, axis=1) ** 2))
+    return similarity_rms(A, B, mirror=True)  # the scaled camera cannot tell a mirror image
 
 
 def test_pinhole_keypoints_are_solved_exactly_and_reported_in_pixels(tmp_path, rng):

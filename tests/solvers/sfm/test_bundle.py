@@ -6,8 +6,9 @@ from scipy.sparse import csr_matrix
 
 from mpe3d.errors import MpeError
 from mpe3d.solvers.degenerate import DegenerateWarning
+from mpe3d.solvers.factorize import metric_upgrade_pd
 from mpe3d.solvers.linalg import matvec_by_group
-from mpe3d.solvers.sfm import bundle
+from mpe3d.solvers.sfm import bundle, camera_fits
 from mpe3d.solvers.sfm.cameras import (
     AFFINE,
     Cameras,
@@ -19,7 +20,7 @@ from mpe3d.solvers.sfm.cameras import (
     with_distortion,
 )
 from mpe3d.solvers.sfm.triangulation import widest_angles
-from tests.helpers import SHARED, blas_fuses_small_products
+from tests.helpers import SHARED, blas_fuses_small_products, similarity_rms
 
 N, K = 60, 6
 
@@ -45,10 +46,7 @@ def _cameras(model, rng, focal=900.0):
 
 def _similarity_error(X, truth):
     """RMS distance after the best similarity (mirror allowed), relative to the size."""
-    a, b = X - X.mean(0), truth - truth.mean(0)
-    U, S, Vt = np.linalg.svd(a.T @ b)
-    fitted = (S.sum() / np.sum(a ** 2)) * a @ (U @ Vt)
-    return np.sqrt(np.mean(np.sum((fitted - b) ** 2, 1))) / np.sqrt(np.mean(np.sum(b ** 2, 1)))
+    return similarity_rms(X, truth, mirror=True) / np.sqrt(np.mean(np.sum((truth - truth.mean(0)) ** 2, 1)))
 
 
 def _random_cameras(model, rng):
@@ -292,7 +290,7 @@ def test_the_metric_upgrade_is_positive_definite_where_the_linear_one_is_not(rng
     # Affine cameras far from any weak-perspective family: the linear M is indefinite.
     L = rng.standard_normal((5, 3, 2)) * np.array([1.0, 1.0, 20.0])[:, None]
     L[:, 2, 0] *= -1
-    A = bundle.metric_upgrade_pd(L)
+    A = metric_upgrade_pd(L)
     assert np.all(np.isfinite(A)) and abs(np.linalg.det(A)) > 0
     assert np.linalg.eigvalsh(A @ A.T).min() > 0
 
@@ -387,7 +385,7 @@ def test_a_start_point_behind_a_pinhole_is_pulled_in_front_and_the_rest_left_alo
     R, depth = cameras.current_rotations(), cameras.params[:, 5]
     X[5] = -3.0 * depth[0] * R[0, 2]  # ... but point 5, far behind camera 0, which sees it
     assert np.any((tracks.point == 5) & (tracks.view == 0))
-    moved = bundle.in_front(X, cameras, tracks)
+    moved = camera_fits._in_front(X, cameras, tracks)
     seen_at = depth[tracks.view] + np.einsum("ti,ti->t", R[tracks.view, 2], moved[tracks.point])
     assert seen_at.min() >= 0.5 * depth.min() * (1 - 1e-12)
     unchanged = np.ones(len(X), dtype=bool)
@@ -441,11 +439,11 @@ def test_a_race_on_a_share_of_many_points_reaches_the_minimum_the_whole_race_rea
     n, k = 1500, 8
     X, _, view, point, z = random_views(rng, "perspective", n, k, turn=0.5, noise=0.5, keep=0.8)
     tracks = bundle.Tracks(view, point, z, n, k)
-    raced = bundle.race_points(tracks)
-    assert raced.sum() == bundle.RACE_POINTS and raced[0] and raced[-1]
+    raced = camera_fits._race_points(tracks)
+    assert raced.sum() == camera_fits.RACE_POINTS and raced[0] and raced[-1]
     assert np.all(np.diff(np.flatnonzero(raced)) <= 2)  # spread over all of them
     shared = bundle.bundle_adjust(tracks, "perspective")
-    monkeypatch.setattr(bundle, "RACE_POINTS", n)
+    monkeypatch.setattr(camera_fits, "RACE_POINTS", n)
     whole = bundle.bundle_adjust(tracks, "perspective")
     rms = [np.sqrt(np.mean(np.sum(f.residuals[~f.dropped] ** 2, axis=1))) for f in (shared, whole)]
     assert rms[0] == pytest.approx(rms[1], rel=1e-6)

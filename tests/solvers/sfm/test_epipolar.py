@@ -78,7 +78,7 @@ def test_on_dino_with_three_percent_wrong_matches_most_are_flagged_before_the_fi
     assert flagged[~wrong].mean() <= 0.002
     # on the clean tracks a few suspicions (0.1%), which the fit takes back
     tracks = bundle.Tracks(view, point, z, point.max() + 1, view.max() + 1)
-    suspects = bundle.epipolar_flags(tracks, bundle.OUTLIER_THRESHOLD)
+    suspects = bundle._epipolar_flags(tracks, bundle.OUTLIER_THRESHOLD)
     assert suspects.mean() <= 0.002
     assert not bundle.bundle_adjust(tracks).dropped[suspects].any()
 
