@@ -8,8 +8,8 @@ and the worst wall time of ``--repeats`` fresh processes, beside the time of a
 bare ``python -c pass`` measured in the same run (the floor no command beats),
 with the machine's load average. Target: under 1 s each.
 
-A last line times ``mpe3d run`` of the paper's default scene (airplane,
-N = 1024, K = 5, SGD) as a fresh process: its wall time, the run's own
+A last line times ``mpe3d run shape=airplane points=512 views=4
+solver=refine`` as a fresh process: its wall time, the run's own
 ``runtime_s`` (the solver) and their difference, what a process spends
 besides solving (imports, the code identity, loading the compiled kernels,
 sampling and scoring), and when the process reached its first solve:
@@ -17,8 +17,9 @@ the time from starting it to the solver's call (read by a probe that wraps
 ``mpe3d.solvers.solve`` in the fresh process and prints the clock there).
 The kernels are compiled before the first timing, as they are once per
 install. Targets: the first solve within 2 s of the start, and the
-difference (which also holds scoring: POT's import and the exact EMD) under
-2 s.
+difference (which also holds scoring, the exact EMD among it) at most 1.5 s,
+on the machine that ``machine`` describes (``benchmarks/machine.py``,
+measured first, on an idle machine).
 """
 
 from __future__ import annotations
@@ -31,6 +32,9 @@ import subprocess
 import sys
 import time
 
+from machine import describe
+
+BESIDES_TARGET_S = 1.5
 
 def wall(command: list[str], repeats: int) -> list[float]:
     times = []
@@ -47,6 +51,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     beside = os.path.join(os.path.dirname(sys.executable), "mpe3d")  # this environment's first
     script = beside if os.path.exists(beside) else shutil.which("mpe3d")
+    machine = describe()  # before the timings, on an idle machine
     floor = wall([sys.executable, "-c", "pass"], args.repeats)
     for words in (["--help"], ["run", "--help"]):
         times = wall([script, *words], args.repeats)
@@ -56,7 +61,7 @@ def main(argv=None) -> int:
                           "python_floor_s": round(floor[len(floor) // 2], 3),
                           "met": median < 1.0, "load_avg_1min": round(os.getloadavg()[0], 2)}),
               flush=True)
-    print(json.dumps(first_solve(script, args.repeats)), flush=True)
+    print(json.dumps({**first_solve(script, args.repeats), "machine": machine}), flush=True)
     return 0
 
 
@@ -80,7 +85,7 @@ raise SystemExit(console())
 
 
 def first_solve(script: str, repeats: int) -> dict:
-    words = ["run", "shape=airplane", "points=1024", "views=5", "solver=sgd", "--json"]
+    words = ["run", "shape=airplane", "points=512", "views=4", "solver=refine", "--json"]
     command = [script, *words]
     subprocess.run(command, check=True, stdout=subprocess.DEVNULL)  # compiles the kernels once
     walls, solves, reached = [], [], []
@@ -100,7 +105,7 @@ def first_solve(script: str, repeats: int) -> dict:
             "wall_median_s": round(sorted(walls)[len(walls) // 2], 3),
             "solve_median_s": round(sorted(solves)[len(solves) // 2], 3),
             "first_solve_median_s": round(first, 3), "first_solve_met": first < 2.0,
-            "besides_solving_median_s": round(median, 3), "met": median < 2.0,
+            "besides_solving_median_s": round(median, 3), "met": median <= BESIDES_TARGET_S,
             "load_avg_1min": round(os.getloadavg()[0], 2)}
 
 

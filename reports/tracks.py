@@ -35,7 +35,7 @@ def _labelled(frame: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     return out.assign(series=out.apply(label, axis=1) if len(out) else [])
 
 
-def render(frame: pd.DataFrame, report, varying: list[str]) -> None:
+def write_section(frame: pd.DataFrame, report, varying: list[str]) -> None:
     """A table per data set (a row per perturbation and method: mean and
     standard deviation over the seeds' draws), then, for each perturbation
     that varies, its figure: the error on the clean observations (and the 3D

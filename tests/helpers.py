@@ -237,3 +237,12 @@ def similarity_residuals(X, truth, mirror: bool = False) -> np.ndarray:
 def similarity_rms(X, truth, mirror: bool = False) -> float:
     """The RMS of :func:`similarity_residuals`."""
     return float(np.sqrt(np.mean(similarity_residuals(X, truth, mirror) ** 2)))
+
+
+def pyproject() -> dict:
+    """pyproject.toml, parsed (tomllib, or tomli before Python 3.11)."""
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    return tomllib.loads((REPO / "pyproject.toml").read_text())

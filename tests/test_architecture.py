@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from mpe3d.harness.tracking.identity import imported_modules
-from tests.helpers import PACKAGE_DIRS, REPO
+from tests.helpers import PACKAGE_DIRS, REPO, pyproject
 
 OUR_CODE = [REPO / d for d in ("src", "harness", "solvers", "reports", "sweeps", "tests",
                                "scripts", "benchmarks", "examples")]
@@ -187,9 +187,7 @@ def test_every_subpackage_declares_its_public_names():
 
 def _layer_contracts() -> list[tuple[str, list[list[str]]]]:
     """(container, layers as lists of members) of each layers contract."""
-    import tomllib
-
-    contracts = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    contracts = pyproject()["tool"]["importlinter"]["contracts"]
     out = []
     for contract in contracts:
         if contract["type"] == "layers":

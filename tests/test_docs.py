@@ -49,10 +49,9 @@ def test_every_relative_link_resolves():
 
 def test_the_architecture_page_shows_the_enforced_layers_in_their_order():
     """The rule lives in pyproject.toml's contracts; the page's diagram is its picture."""
-    import pytest
+    from tests.helpers import pyproject
 
-    tomllib = pytest.importorskip("tomllib")
-    contracts = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["importlinter"]["contracts"]
+    contracts = pyproject()["tool"]["importlinter"]["contracts"]
     layers = next(c for c in contracts if c["type"] == "layers" and "containers" not in c)["layers"]
     page = (REPO / "docs" / "architecture.md").read_text()
     diagram = page.split("## The layer rule")[1].split("```")[1]

@@ -39,8 +39,8 @@ def check_run_count(count: int, where: str, max_runs: int | None) -> None:
 
 def run_bytes(points: int) -> float:
     """A floor on what one run of N points holds at once: every run scores its
-    reconstruction with the exact EMD, whose N x N cost and transport matrices
-    are dense (POT's ``ot.emd``), beside the scene's own arrays."""
+    reconstruction with the exact EMD, whose N x N cost matrix is dense, with
+    the assignment's working copy of it, beside the scene's own arrays."""
     return 16.0 * points * points + 256.0 * points
 
 

@@ -8,7 +8,7 @@ the claim waits for it instead of computing the config again, and a claim
 whose owner died is closed as KILLED and computed anew.
 
 Workers (joblib's loky processes, dask workers, or one thread for
-``--jobs 1``) compute whole runs and return :class:`~mpe3d.harness.experiment.execute.RunRecord`
+``--jobs 1``) compute whole runs and return :class:`~mpe3d.harness.tracking.records.RunRecord`
 objects. The parent writes each one to the local journal, then logs it to
 MLflow, then drops it from the journal: an interrupt, a crash or a store
 outage never loses a computed result, and the next invocation replays what

@@ -11,6 +11,7 @@ import logging
 import os
 import queue
 import signal
+import sys
 import threading
 from typing import Iterator
 
@@ -51,17 +52,27 @@ class _ThreadPool:
     terminate = close
 
 
-def _ignore_sigint() -> None:
+def _worker_start(parent: int) -> None:
     """In each worker: Ctrl-C reaches the whole process group, but only the
-    parent decides what stops (a worker cut mid-run would log a false FAILED)."""
+    parent decides what stops (a worker cut mid-run would log a false FAILED);
+    and the worker dies with its parent. A parent that leaves without closing
+    the pool (``os._exit``, as a pytest-xdist worker leaves) would otherwise
+    leave its workers, and the resource trackers they hold open, running."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if sys.platform.startswith("linux"):
+        import ctypes
+
+        pr_set_pdeathsig = 1
+        ctypes.CDLL(None, use_errno=True).prctl(pr_set_pdeathsig, signal.SIGKILL)
+    if os.getppid() != parent:  # the parent died before the line above
+        os._exit(0)
 
 
 @contextlib.contextmanager
 def _sigint_held() -> Iterator[None]:
     """SIGINT held back from this thread, and delivered when released. A
     process or thread started meanwhile inherits the block, so a worker cannot
-    meet a Ctrl-C before :func:`_ignore_sigint` runs in it."""
+    meet a Ctrl-C before :func:`_worker_start` runs in it."""
     held = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
@@ -88,7 +99,8 @@ class _LokyPool:
         # unblocks SIGINT (Python 3.11), so it is started first, unheld
         resource_tracker.ensure_running()
         with _sigint_held():  # loky starts workers (and its manager thread) in these calls
-            self.executor = get_reusable_executor(max_workers=workers, initializer=_ignore_sigint)
+            self.executor = get_reusable_executor(max_workers=workers, initializer=_worker_start,
+                                                 initargs=(os.getpid(),))
 
     def submit(self, fn, *args) -> cf.Future:
         with _sigint_held():

@@ -8,8 +8,9 @@ Scales, for comparing with the paper's tables (see the README):
 
 * ``cd``: Eq. 5 as printed, sums of squared nearest-neighbour distances in
   both directions; grows with N. ``cd_mean`` uses means instead of sums.
-* ``emd``: Eq. 4, the sum of distances over the optimal bijection (exact, POT
-  ``ot.emd``); ``emd_mean`` is the same per point.
+* ``emd``: Eq. 4, the sum of distances over the optimal bijection (exact:
+  scipy's assignment for clouds of one size, POT's ``ot.emd`` otherwise);
+  ``emd_mean`` is the same per point.
 * ``roa``: root-mean-square distance between corresponding points after the
   rigid alignment (paper appendix).
 * ``cd_x100`` and ``emd_x100``: 100 x mean (unsquared) distances, the scale
@@ -76,18 +77,27 @@ def chamfer(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
 def earth_movers(a: np.ndarray, b: np.ndarray) -> dict[str, float]:
     """Eq. 4: sum of distances over the optimal bijection (exact transport).
 
-    Clouds of different sizes (COLMAP's points against surface samples) are
-    matched by the optimal transport of equal masses 1/len per point; the
-    sum form then counts len(a) points, so both forms agree with Eq. 4
-    whenever the sizes are equal.
+    Two clouds of one size with equal masses: the optimal transport plan is a
+    permutation (Birkhoff), so the exact EMD is the assignment problem, which
+    scipy solves (``linear_sum_assignment``: the same optimum as POT's network
+    simplex, 10x faster at 2,048 points, and no import of POT, which brings
+    scikit-learn into every fresh process). Clouds of different sizes
+    (COLMAP's points against surface samples) are matched by POT's optimal
+    transport of equal masses 1/len per point; the sum form then counts
+    len(a) points, so both forms agree with Eq. 4 whenever the sizes are equal.
     """
-    import ot  # here, not at the top: POT imports scikit-learn, 1.5 s of every fresh process
-
     n, m = len(a), len(b)
     M = cdist(a, b)
-    plan = ot.emd(np.full(n, 1.0 / n), np.full(m, 1.0 / m), M,
-                  numItermax=max(100_000, 50 * n * m))
-    mean = float(np.sum(plan * M))
+    if n == m:
+        from scipy.optimize import linear_sum_assignment
+
+        rows, cols = linear_sum_assignment(M)
+        mean = float(np.mean(M[rows, cols]))
+    else:
+        import ot  # here, not at the top: POT imports scikit-learn, a second of a fresh process
+
+        plan = ot.emd(np.full(n, 1.0 / n), np.full(m, 1.0 / m), M, numItermax=max(100_000, 50 * n * m))
+        mean = float(np.sum(plan * M))
     return {"emd": n * mean, "emd_mean": mean, "emd_x100": 100.0 * mean}
 
 

@@ -1,7 +1,7 @@
 """MLflow tracking: where runs live, which are already done, and logging results.
 
 Only the parent process uses this module: workers return
-:class:`~mpe3d.harness.experiment.execute.RunRecord` objects and the parent logs them here, one
+:class:`~mpe3d.harness.tracking.records.RunRecord` objects and the parent logs them here, one
 by one as they arrive. The default store is MLflow's embedded SQLite database
 ``./mlflow.db`` with artifacts in ``./mlartifacts``; ``MLFLOW_TRACKING_URI`` or
 an explicit URI (``sqlite:///...``, ``http://host:port``) points elsewhere.

@@ -33,7 +33,6 @@ import numpy as np
 from mpe3d.errors import MpeError, first_line
 from mpe3d.harness.files import atomic_write, write_together
 
-INPUT_FORMATS = (".csv", ".npz", ".json")
 OUTPUT_FORMATS = (".ply", ".csv", ".npy")
 ORTHONORMAL_TOL = 1e-6
 

@@ -145,3 +145,24 @@ def test_help_imports_nothing_heavy():
     for args in (["--help"], ["run", "--help"], ["sweep", "--help"]):
         done = subprocess.run(mpe3d_command() + args, capture_output=True, text=True)
         assert done.returncode == 0 and "usage" in done.stdout
+
+
+def test_report_of_a_sweep_without_its_overrides_says_what_the_experiment_holds(tmp_path):
+    """The runs exist, but of other configs: the message counts them and says
+    the overrides must match, instead of "run it first"."""
+    from mpe3d.cli import main
+
+    sweep = tmp_path / "s.yaml"
+    sweep.write_text("name: overridden\nbase: {points: 40, solver: refine}\ngrid:\n  views: [3, 4]\n")
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    assert main(["sweep", str(sweep), "points=36", "--jobs", "1", "--quiet", "--no-artifacts",
+                 "--tracking-uri", uri]) == 0
+    out = subprocess.run([*mpe3d_command(), "report", "--sweep", str(sweep), "--out", str(tmp_path / "r"),
+                          "--tracking-uri", uri], capture_output=True, text=True, cwd=tmp_path, timeout=300)
+    assert out.returncode == 1
+    assert "no finished runs of sweep" in out.stderr and "run it first" not in out.stderr
+    assert "holds 2 finished run(s) of other configs" in out.stderr and "overrides" in out.stderr
+    again = subprocess.run([*mpe3d_command(), "report", "--sweep", str(sweep), "points=36", "--out",
+                            str(tmp_path / "r"), "--tracking-uri", uri], capture_output=True, text=True,
+                           cwd=tmp_path, timeout=300)
+    assert again.returncode == 0, again.stderr
