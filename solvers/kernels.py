@@ -45,9 +45,8 @@ from mpe3d.solvers.warmup import warm_up
 _ints = functools.partial(np.array, dtype=np.int64)  # the warm-ups' index arrays
 _WARM_Y = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0]])  # three image points: the warm-ups' view
 
-# Loss codes, and the names a solver's ``loss`` option gives them.
-L2, HUBER, SOFT_L1 = 0, 1, 2
-LOSS_CODES = dict(zip(STRESS_LOSSES, (L2, HUBER, SOFT_L1)))
+# Loss codes: each stress loss's place in mpe3d.options.STRESS_LOSSES, the one list of them.
+L2, HUBER, SOFT_L1 = (STRESS_LOSSES.index(name) for name in ("l2", "huber", "soft_l1"))
 # Floor on e in 1/e: keeps it finite for coincident images, where r e-terms cancel.
 E_FLOOR = 1e-12
 # Reductions may be split into vector lanes (an order fixed at compile time) and

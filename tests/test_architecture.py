@@ -168,6 +168,32 @@ def test_no_module_is_over_500_lines_without_a_reason():
     assert not long, long
 
 
+def test_no_constant_is_dead_and_no_module_ends_on_a_heading():
+    """A module-level constant that nothing reads (INPUT_FORMATS was one) is a
+    rule nobody follows; a section heading with nothing under it is a room
+    with no one in it."""
+    import re
+
+    texts = [p.read_text() for folder in OUR_CODE for p in folder.rglob("*.py") if "__pycache__" not in p.parts]
+    dead, headings = [], []
+    for name, path in _modules().items():
+        source = path.read_text()
+        for node in ast.parse(source).body:
+            targets = node.targets if isinstance(node, ast.Assign) else \
+                [node.target] if isinstance(node, ast.AnnAssign) else []
+            for target in targets:
+                if isinstance(target, ast.Name) and re.fullmatch(r"_?[A-Z][A-Z0-9_]*", target.id) \
+                        and target.id != "__all__":
+                    uses = sum(len(re.findall(rf"\b{target.id}\b", text)) for text in texts)
+                    if uses <= 1:
+                        dead.append(f"{name}.{target.id}")
+        last = [line for line in source.splitlines() if line.strip()][-1]
+        if last.lstrip().startswith("# --"):
+            headings.append(name)
+    assert not dead, dead
+    assert not headings, headings
+
+
 def _packages() -> dict[str, Path]:
     return {name: path for name, path in _modules().items() if path.name == "__init__.py"}
 

@@ -27,7 +27,14 @@ from mpe3d.errors import MpeError
 from mpe3d.harness.tracking.identity import code_identity
 from mpe3d.harness.userdata.formats import read_projections, read_views
 from mpe3d.harness.userdata.observations import drop_missing, observations_from
-from mpe3d.options import CAMERAS, OBJECTIVES, REPROJECTION_LOSSES, STARTS, STRESS_LOSSES
+from mpe3d.options import (
+    CAMERAS,
+    OBJECTIVES,
+    OUTLIER_THRESHOLDS,
+    REPROJECTION_LOSSES,
+    STARTS,
+    STRESS_LOSSES,
+)
 from mpe3d.solvers import Observations
 from mpe3d.solvers.degenerate import check_geometry, collect_notes
 from mpe3d.solvers.sfm import bundle
@@ -142,10 +149,9 @@ def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
         OBJECTIVES.check("objective", objective)
     CAMERAS.check("camera", camera)
     REPROJECTION_LOSSES.check("loss", loss)
-    if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)) \
-            or not outlier_threshold > 0:
-        raise MpeError(f"outlier_threshold: expected a number > 0 (inf keeps every observation), "
-                       f"got {outlier_threshold!r}")
+    if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)):
+        raise MpeError(f"outlier_threshold: expected a number, got {outlier_threshold!r}")
+    OUTLIER_THRESHOLDS.check("outlier_threshold", outlier_threshold, "(inf keeps every observation)")
     _check_pair(missing, "missing")
 
 

@@ -32,6 +32,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from mpe3d.options import OUTLIER_THRESHOLD
 from mpe3d.solvers.factorize import metric_upgrade_pd
 from mpe3d.solvers.linalg import fit_views, rows_of
 from mpe3d.solvers.sfm.adjust import adjust
@@ -67,7 +68,7 @@ class Grown(NamedTuple):
     left_out: np.ndarray  # (T,) bool
 
 
-def incremental_start(tracks, threshold: float = 20.0, tol: float = 1e-6) -> Grown | None:
+def incremental_start(tracks, threshold: float = OUTLIER_THRESHOLD, tol: float = 1e-6) -> Grown | None:
     """(X, scaled cameras, left_out) grown from a seed of three views, or None
     when there are fewer, no three share 4 points or some view is never reached.
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from mpe3d.options import OUTLIER_THRESHOLD
 from mpe3d.solvers.sfm.adjust import adjust
 from mpe3d.solvers.sfm.support import FAR_FACTOR, ROUND_TOL, informative, median_radii, placed_points, weak_points
 from mpe3d.solvers.sfm.tracks import residual_lengths, robust_sigma
@@ -18,10 +19,6 @@ from mpe3d.solvers.sfm.triangulation import (
 _OUTLIER_ROUNDS = 20
 _READMISSION_ROUNDS = 4
 _RUNAWAY_ROUNDS = 3  # solves without the points that ran away
-# In robust sigmas: real tracks have heavy tails (0.1% of VGG's verified house
-# and dino observations lie beyond 26-58 sigmas of a pinhole fit), while a
-# wrong match is typically hundreds of sigmas away.
-OUTLIER_THRESHOLD = 20.0
 
 
 def without_runaways(fit, tracks, used, lm_options):

@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from mpe3d.errors import MpeError
-from mpe3d.options import CAMERAS, OBJECTIVES, REPROJECTION_LOSSES, STARTS
+from mpe3d.options import CAMERAS, OBJECTIVES, OUTLIER_THRESHOLD, REPROJECTION_LOSSES, STARTS
 
 
 def _pair(text: str):
@@ -52,10 +52,10 @@ def add_parser(sub) -> None:
                      "centre (default: the centre of the keypoints)")
     rec.add_argument("--missing", type=_pair, metavar="X,Y",
                      help="drop observations at exactly X,Y (e.g. -1,-1: a tracker's 'not seen')")
-    rec.add_argument("--outlier-threshold", type=float, default=20.0, metavar="SIGMAS",
+    rec.add_argument("--outlier-threshold", type=float, default=OUTLIER_THRESHOLD, metavar="SIGMAS",
                      help="reprojection: drop observations beyond this many robust sigmas as "
-                     "wrong matches (default 20; inf keeps all, and turns refine's rejection "
-                     "rounds off for the stress)")
+                     f"wrong matches (default {OUTLIER_THRESHOLD:g}; inf keeps all, and turns refine's "
+                     "rejection rounds off for the stress)")
     rec.add_argument("--solver", default="refine", metavar="NAME",
                      help="the stress solver: refine (default) or any other of `mpe3d solvers`, "
                      "a plug-in's (--plugin) included")

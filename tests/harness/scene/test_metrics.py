@@ -64,3 +64,19 @@ def test_evaluate_reports_every_metric(rng):
     assert set(scores) >= {"cd", "cd_mean", "emd", "emd_mean", "roa"}
     assert all(v < 1e-10 for v in scores.values())
     assert np.allclose(aligned, truth, atol=1e-12)
+
+
+def test_the_tests_alignment_counts_errors_that_cancel_between_axes(rng):
+    """The tests' one alignment helper: a point moved by (e, -e, 0) is off by
+    e*sqrt(2), not by the zero that summing signed axes before squaring gave
+    (the copy in test_keypoints did; its errors cancelled and passed)."""
+    from tests.helpers import similarity_residuals, similarity_rms
+
+    truth = rng.normal(size=(50, 3))
+    moved = truth.copy()
+    moved[7] += [0.3, -0.3, 0.0]
+    assert similarity_residuals(moved, truth)[7] > 0.3
+    assert similarity_rms(moved, truth) > 0.3 * np.sqrt(2) / np.sqrt(50) * 0.9
+    mirrored = truth * [1, 1, -1]
+    assert similarity_rms(mirrored, truth) > 0.1  # a mirror image is another shape ...
+    assert similarity_rms(mirrored, truth, mirror=True) < 1e-12  # ... unless mirrors are allowed

@@ -150,7 +150,7 @@ def test_a_capped_solve_says_so(rng):
 @pytest.mark.parametrize("kwargs, message", [
     ({"camera": "fisheye"}, "camera: 'fisheye' is not one of auto, orthographic"),
     ({"objective": "energy"}, "objective: 'energy' is not one of reprojection, stress"),
-    ({"outlier_threshold": -1}, "outlier_threshold: expected a number > 0"),
+    ({"outlier_threshold": -1}, "outlier_threshold: must be > 0"),
     ({"missing": (1, 2, 3)}, "missing: expected two finite numbers"),
     ({"loss": "cauchy", "objective": "stress"}, "loss='cauchy' is for objective='reprojection'"),
 ])
