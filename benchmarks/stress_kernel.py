@@ -34,8 +34,9 @@ from threadpoolctl import threadpool_limits
 from mpe3d import make_config
 from mpe3d.harness.experiment.execute import BLAS_THREADS
 from mpe3d.harness.scene.observe import build_scene, observe, seed_streams
+from mpe3d.options import STRESS_LOSSES
 from mpe3d.solvers.sgd import random_projections
-from mpe3d.solvers.stress import STRESS_LOSSES, Stress
+from mpe3d.solvers.stress import Stress
 
 
 def per_call(stress: Stress, X, P, repeats: int):
