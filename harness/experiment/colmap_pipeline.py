@@ -31,7 +31,9 @@ from mpe3d.harness.experiment.result import RunResult, short_number
 from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.scene.visibility import SELF_HIT_TOLERANCE
-from mpe3d.solvers.sfm.bundle import AUTO_RATIO, OUTLIER_THRESHOLD, median_radii
+from mpe3d.options import OUTLIER_THRESHOLD
+from mpe3d.solvers.sfm.bundle import AUTO_RATIO
+from mpe3d.solvers.sfm.support import median_radii
 
 TRACK_METHODS = ("bundle", "sgd", "refine")  # what COLMAP's tracks are fed to, in this order
 MIN_ALIGNED = 3  # registered photos (or shared tracks) a similarity needs

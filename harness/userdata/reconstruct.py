@@ -38,8 +38,8 @@ from mpe3d.options import (
 from mpe3d.solvers import Observations
 from mpe3d.solvers.degenerate import check_geometry, collect_notes
 from mpe3d.solvers.sfm import bundle
-from mpe3d.solvers.sfm.bundle import FAR_FACTOR, MIN_RAY_ANGLE
 from mpe3d.solvers.sfm.cameras import radial_cameras
+from mpe3d.solvers.sfm.support import FAR_FACTOR, MIN_RAY_ANGLE
 
 
 @dataclass(frozen=True)

@@ -52,7 +52,7 @@ from mpe3d.solvers.degenerate import warn
 from mpe3d.solvers.linalg import elongation, sum_by
 from mpe3d.solvers.sfm import incremental
 from mpe3d.solvers.sfm.adjust import adjust, one_blas_thread
-from mpe3d.solvers.sfm.camera_fits import FITTERS, scaled_fit, weak_perspective_start  # noqa: F401 (re-export)
+from mpe3d.solvers.sfm.camera_fits import FITTERS, scaled_fit
 from mpe3d.solvers.sfm.cameras import (
     MATRIX,
     PINHOLES,
@@ -68,14 +68,11 @@ from mpe3d.solvers.sfm.outliers import (
     without_outliers,
     without_runaways,
 )
-from mpe3d.solvers.sfm.support import (  # noqa: F401 (re-exported for callers of bundle)
+from mpe3d.solvers.sfm.support import (
     ELONGATION,
-    FAR_FACTOR,
     MIN_RAY_ANGLE,
     informative,
     mean_by_view,
-    median_radii,
-    weak_geometry,
     weak_points,
 )
 from mpe3d.solvers.sfm.tracks import EXACT_RMS, Tracks, image_size, residual_lengths, rms
