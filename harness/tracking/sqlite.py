@@ -54,11 +54,7 @@ def open_sqlite(uri: str, database: Path, create: bool = True):
     read-only, with no lock: a command that writes refuses it in one line.
     """
     if not create and read_only(database):
-        from mlflow.tracking import MlflowClient
-
-        client = MlflowClient(tracking_uri=read_only_uri(database))
-        client.search_experiments(max_results=1)
-        return client
+        return _client(read_only_uri(database), database, new=False)
 
     lock = database.with_name(database.name + ".lock")
     made = _not_yet(database, lock)

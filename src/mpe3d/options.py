@@ -37,29 +37,26 @@ class Interval:
         return ((self.low is None or value > self.low or (left and value == self.low))
                 and (self.high is None or value < self.high or (right and value == self.high)))
 
-    def __str__(self) -> str:
-        noun = "an integer" if self.kind is int else "a number"
+    def _bound(self) -> str:
+        """The range alone: ">= 4", "< 1", "in [0, 1)"."""
+        closed_low, closed_high = self.closed in ("both", "left"), self.closed in ("both", "right")
         if self.high is None:
-            return f"{noun} {'>=' if self.closed in ('both', 'left') else '>'} {self.low:g}"
+            return f"{'>=' if closed_low else '>'} {self.low:g}"
         if self.low is None:
-            return f"{noun} {'<=' if self.closed in ('both', 'right') else '<'} {self.high:g}"
-        left = "[" if self.closed in ("both", "left") else "("
-        right = "]" if self.closed in ("both", "right") else ")"
-        return f"{noun} in {left}{self.low:g}, {self.high:g}{right}"
+            return f"{'<=' if closed_high else '<'} {self.high:g}"
+        return f"in {'[' if closed_low else '('}{self.low:g}, {self.high:g}{']' if closed_high else ')'}"
+
+    def __str__(self) -> str:
+        return f"{'an integer' if self.kind is int else 'a number'} {self._bound()}"
 
     def requirement(self) -> str:
         """The rule as a config error says it: "must be at least 4",
         "must be between 64 and 4096", "must be in [0, 1)"."""
-        closed_low = self.closed in ("both", "left")
-        if self.high is None:
-            if self.kind is int and closed_low and self.low > 0:  # a count
-                return f"must be at least {self.low:g}"
-            return f"must be {'>=' if closed_low else '>'} {self.low:g}"
-        if self.low is None:
-            return f"must be {'<=' if self.closed in ('both', 'right') else '<'} {self.high:g}"
-        if self.kind is int and self.closed == "both":
+        if self.kind is int and self.high is None and self.closed in ("both", "left") and self.low > 0:
+            return f"must be at least {self.low:g}"  # a count
+        if self.kind is int and None not in (self.low, self.high) and self.closed == "both":
             return f"must be between {self.low:g} and {self.high:g}"
-        return "must be " + str(self).split(" ", 2)[2]  # "in [0, 1)"
+        return f"must be {self._bound()}"
 
     def check(self, key: str, value, unit: str = "") -> None:
         """Raise one line naming ``key`` when ``value`` breaks the rule."""
