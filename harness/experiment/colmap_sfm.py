@@ -18,12 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mpe3d.harness.userdata.colmap_model import require_pycolmap
-
-EXHAUSTIVE_UP_TO = 50  # photos; beyond, matching pairs each photo with its path neighbours
-
-
-SEQUENTIAL_OVERLAP = 10  # neighbours on each side of a photo along the path
+from mpe3d.harness.userdata.photos import FeatureTracks, extract_and_match, match_tracks
+from mpe3d.solvers.sfm.colmap_link import require_pycolmap
 
 
 def colmap_version() -> str:
@@ -51,12 +47,6 @@ class SfmResult:
         return {name: -R.T @ t for name, (R, t) in self.registered.items()}
 
 
-def matching_for(count: int, matching: str = "auto") -> str:
-    if matching != "auto":
-        return matching
-    return "exhaustive" if count <= EXHAUSTIVE_UP_TO else "sequential"
-
-
 def run_sfm(image_dir: Path, names: list[str], workdir: Path, *, focal: float,
             principal_point, matching: str = "auto", seed: int = 0,
             max_features: int = 8192) -> SfmResult:
@@ -67,30 +57,9 @@ def run_sfm(image_dir: Path, names: list[str], workdir: Path, *, focal: float,
     pycolmap.set_random_seed(seed)
     database = workdir / "database.db"
     database.unlink(missing_ok=True)
-    seconds = {}
-    start = time.perf_counter()
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = "SIMPLE_PINHOLE"
-    reader.camera_params = f"{focal},{principal_point[0]},{principal_point[1]}"
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = 1
-    extraction.sift.max_num_features = max_features
-    pycolmap.extract_features(database, image_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
-    seconds["extract_s"] = time.perf_counter() - start
-    start = time.perf_counter()
-    options = pycolmap.FeatureMatchingOptions()
-    options.num_threads = 1
-    if matching_for(len(names), matching) == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=options, device=pycolmap.Device.cpu)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = SEQUENTIAL_OVERLAP
-        pairing.loop_detection = False  # needs a vocabulary tree file; the path is closed anyway
-        pycolmap.match_sequential(database, matching_options=options, pairing_options=pairing,
-                                  device=pycolmap.Device.cpu)
-    seconds["match_s"] = time.perf_counter() - start
+    seconds = extract_and_match(database, image_dir, names, camera_model="SIMPLE_PINHOLE",
+                                camera_params=f"{focal},{principal_point[0]},{principal_point[1]}",
+                                matching=matching, threads=1, max_features=max_features)
     start = time.perf_counter()
     mapping = pycolmap.IncrementalPipelineOptions()
     mapping.num_threads = 1
@@ -123,77 +92,9 @@ def _largest(models: dict, database: Path, names: list[str], seconds: dict) -> S
                      image_points, seconds)
 
 
-@dataclass
-class FeatureTracks:
-    """Tracks of COLMAP's verified matches: for each, its photos and keypoints."""
-
-    names: list[str]  # photo names, by database image id order
-    image: np.ndarray  # (T,) photo index of each observation
-    track: np.ndarray  # (T,) track index of each observation
-    keypoint: np.ndarray  # (T,) keypoint index in its photo
-    xy: np.ndarray  # (T, 2) pixels
-    conflicting: int  # tracks dropped: two keypoints of one photo
-
-    @property
-    def n_tracks(self) -> int:
-        return int(self.track.max()) + 1 if len(self.track) else 0
-
-    def views_per_track(self) -> np.ndarray:
-        return np.bincount(self.track, minlength=self.n_tracks)
-
-    def views(self, min_points: int = 3) -> list[dict]:
-        """One keypoint view per photo (tracks as ids), photos with fewer than
-        ``min_points`` tracks left out."""
-        out = []
-        for k, name in enumerate(self.names):
-            rows = np.flatnonzero(self.image == k)
-            if len(rows) >= min_points:
-                out.append({"name": name, "ids": self.track[rows], "xy": self.xy[rows]})
-        return out
-
-
 def database_tracks(database: Path) -> FeatureTracks:
-    """Union-find over every verified inlier match of ``database``; a track
-    holding two keypoints of one photo is inconsistent and dropped."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    pycolmap = require_pycolmap()
-    with pycolmap.Database.open(database) as db:
-        images = sorted(db.read_all_images(), key=lambda im: im.image_id)
-        index = {im.image_id: k for k, im in enumerate(images)}
-        keypoints = [np.asarray(db.read_keypoints(im.image_id))[:, :2] for im in images]
-        pair_ids, geometries = db.read_two_view_geometries()
-    offsets = np.concatenate([[0], np.cumsum([len(kp) for kp in keypoints])])
-    edges = []
-    for pair_id, geometry in zip(pair_ids, geometries):
-        matches = np.asarray(geometry.inlier_matches).reshape(-1, 2)
-        if not len(matches):
-            continue
-        a, b = (index[i] for i in pycolmap.pair_id_to_image_pair(pair_id))
-        edges.append(np.column_stack([offsets[a] + matches[:, 0], offsets[b] + matches[:, 1]]))
-    names = [im.name for im in images]
-    total = int(offsets[-1])
-    if not edges:
-        empty = np.zeros(0, dtype=np.int64)
-        return FeatureTracks(names, empty, empty, empty, np.zeros((0, 2)), 0)
-    edges = np.concatenate(edges)
-    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(total, total))
-    _, label = connected_components(graph, directed=False)
-    node = np.unique(edges)  # keypoints in some match
-    image = np.searchsorted(offsets, node, side="right") - 1
-    label = label[node]
-    per_track = np.bincount(label)
-    distinct = np.bincount(np.unique(label * len(images) + image) // len(images),
-                           minlength=len(per_track))
-    good = per_track == distinct  # no photo twice
-    keep = good[label] & (per_track[label] >= 2)
-    _, track = np.unique(label[keep], return_inverse=True)
-    node, image = node[keep], image[keep]
-    keypoint = node - offsets[image]
-    xy = np.concatenate(keypoints)[node].astype(float)
-    return FeatureTracks(names, image, track.astype(np.int64), keypoint, xy,
-                         int(np.count_nonzero(~good & (per_track >= 2))))
+    """COLMAP's feature tracks: its verified matches joined (what the paper fed to 3DMPE)."""
+    return match_tracks(database, "verified")
 
 
 def triangulated(tracks: FeatureTracks, sfm: SfmResult) -> dict[int, int]:

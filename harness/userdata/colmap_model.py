@@ -14,23 +14,12 @@ from pathlib import Path
 import numpy as np
 
 from mpe3d.errors import MpeError
+from mpe3d.solvers.sfm.colmap_link import require_pycolmap
 
 MODEL_FILES = ("cameras", "images", "points3D")
 # An affine camera written as a pinhole this many cloud diameters away: its
 # projection differs from the affine one by about 1 / FAR of the image extent.
 FAR = 1000.0
-
-
-def require_pycolmap():
-    """pycolmap, or one line saying how to get it."""
-    try:
-        import pycolmap
-    except ImportError:
-        raise MpeError("COLMAP support needs pycolmap: pip install pycolmap") from None
-    logging = getattr(pycolmap, "logging", None)
-    if logging is not None and hasattr(logging, "minloglevel"):
-        logging.minloglevel = 2  # errors only: glog's progress lines are not ours to print
-    return pycolmap
 
 
 def model_files(folder: Path) -> str | None:
@@ -180,6 +169,8 @@ def write_model(folder: str | Path, points: np.ndarray, ids: np.ndarray, views: 
                          f"{FAR:g} cloud diameters away, which projects like it to 1/{FAR:g}")
         skip = {(str(v), str(i)) for v, i in dropped}
         for k, (view, camera) in enumerate(zip(views, cameras), start=1):
+            if not camera.registered:  # COLMAP's mapper left it out: no pose to write
+                continue
             fx, fy, centre, R, T = _pinhole(camera, c, diameter)
             model.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_name(
                 k, "PINHOLE", fx, int(width), int(height)))
@@ -239,8 +230,9 @@ def write_model_folder(folder: Path, problem, result) -> list[str]:
                  "and no pinhole cameras"]
     else:
         cameras = list(result.cameras)
-        first = _pinhole(cameras[0], np.zeros(2), 1.0)[2] if cameras[0].focal_px is not None \
-            or cameras[0].rotation is None else None
+        one = next(c for c in cameras if c.registered)
+        first = _pinhole(one, np.zeros(2), 1.0)[2] if one.focal_px is not None \
+            or one.rotation is None else None
         centre = np.asarray(first if first is not None else problem.principal_point or (0.0, 0.0),
                             dtype=float)
         notes = []

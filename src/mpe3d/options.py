@@ -17,7 +17,8 @@ from dataclasses import dataclass
 from mpe3d.errors import MpeError, suggest
 
 __all__ = ["CAMERAS", "CAMERA_MODELS", "Choice", "INITS", "Interval", "OBJECTIVES", "OUTLIER_THRESHOLD",
-           "OUTLIER_THRESHOLDS", "PROJECTIONS", "REPROJECTION_LOSSES", "STARTS", "STRESS_LOSSES"]
+           "OUTLIER_THRESHOLDS", "MATCHES", "PROJECTIONS", "REPROJECTION_LOSSES", "REPROJECTION_SOLVERS", "STARTS",
+           "STRESS_LOSSES"]
 
 
 @dataclass(frozen=True)
@@ -103,6 +104,12 @@ OBJECTIVES = Choice(("reprojection", "stress"))
 # reprojection error's (scipy's names).
 STRESS_LOSSES = Choice(("l2", "huber", "soft_l1"))
 REPROJECTION_LOSSES = Choice(("l2", "huber", "soft_l1", "cauchy"))
+# Who minimises the reprojection error: mpe3d's bundle adjustment, or COLMAP's
+# geometric verification and incremental mapper on the same tracks.
+REPROJECTION_SOLVERS = Choice(("bundle", "colmap"))
+# Which matches of a COLMAP database (or of photos) make the tracks: the raw
+# ones of the matcher, or those its two-view geometric verification kept.
+MATCHES = Choice(("raw", "verified"))
 # Where bundle adjustment starts: mpe3d's own start, or a Bundler/BAL file's.
 STARTS = Choice(("own", "file"))
 # Observations beyond this many robust sigmas are wrong matches: real tracks

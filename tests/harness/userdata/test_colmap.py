@@ -11,6 +11,7 @@ from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.userdata import colmap_model
 from mpe3d.harness.userdata.reconstruct import ViewCamera, reconstruct
 from mpe3d.reports.claims import FAILS, HOLDS, colmap_fails_below
+from mpe3d.solvers.sfm import colmap_link
 from tests.helpers import close_up_keypoints, similarity_rms
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -189,7 +190,7 @@ def test_pycolmap_missing_is_one_line(monkeypatch):
 
     monkeypatch.setattr(builtins, "__import__", no_pycolmap)
     with pytest.raises(MpeError, match="pip install pycolmap"):
-        colmap_model.require_pycolmap()
+        colmap_link.require_pycolmap()
 
 
 def test_the_colmap_keys_are_checked_and_leave_older_runs_hashes_alone():
@@ -217,7 +218,7 @@ def test_robust_similarity_ignores_a_minority_of_wild_pairs(rng):
 
 
 def test_the_tracks_feed_mpe3d_the_largest_group_of_photos_they_tie_together():
-    from mpe3d.harness.experiment.colmap_pipeline import tied_views
+    from mpe3d.harness.userdata.photos import tied_views
 
     views = [{"name": f"a{k}", "ids": np.arange(10), "xy": np.zeros((10, 2))} for k in range(3)]
     views += [{"name": f"b{k}", "ids": np.arange(20, 30), "xy": np.zeros((10, 2))} for k in range(2)]
