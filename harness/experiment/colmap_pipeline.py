@@ -31,6 +31,7 @@ from mpe3d.harness.experiment.result import RunResult, short_number
 from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.scene.visibility import SELF_HIT_TOLERANCE
+from mpe3d.harness.userdata import photos as photos_in
 from mpe3d.options import OUTLIER_THRESHOLD
 from mpe3d.solvers.sfm.bundle import AUTO_RATIO
 from mpe3d.solvers.sfm.support import median_radii
@@ -75,21 +76,6 @@ def _scores(cloud: np.ndarray, truth: np.ndarray, prefix: str = "") -> dict[str,
     return {f"{prefix}{k}": v for k, v in out.items()}
 
 
-def tied_views(views: list[dict]) -> list[dict]:
-    """The largest group of ``views`` that shared tracks tie together (the
-    rule of :func:`mpe3d.solvers.degenerate.check_geometry`), as COLMAP keeps
-    its largest model: photos that no track links to the rest fix nothing."""
-    from mpe3d.solvers.degenerate import SHARED_VARIABLE, view_groups
-
-    n = 1 + max(int(v["ids"].max()) for v in views)
-    alpha = np.zeros((len(views), n), dtype=np.int32)
-    for k, view in enumerate(views):
-        alpha[k, view["ids"]] = 1
-    count, labels = view_groups(alpha @ alpha.T, SHARED_VARIABLE)
-    largest = np.argmax(np.bincount(labels))
-    return [v for v, label in zip(views, labels) if label == largest]
-
-
 def _fed_to(method: str, views: list[dict], principal_point, pinhole: bool = False):
     """mpe3d's cloud of COLMAP's tracks (ids = track index) by ``method``: the
     solve of :func:`~mpe3d.harness.userdata.reconstruct.reconstruct` on views
@@ -107,7 +93,7 @@ def _fed_to(method: str, views: list[dict], principal_point, pinhole: bool = Fal
     observations, ids = observations_from(views)
     names = [str(view.get("name", k)) for k, view in enumerate(views)]
     if method == "bundle":
-        return solve_problem(Problem(observations, ids, "refine", "l2", 0, objective="reprojection",
+        return solve_problem(Problem(observations, ids, "bundle", "l2", 0, objective="reprojection",
                              camera="perspective", principal_point=tuple(principal_point),
                              view_names=names))
     return solve_problem(Problem(observations, ids, method, "l2", 0, objective="stress", view_names=names,
@@ -137,7 +123,7 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[di
         return out, notes
     row = {int(i): r for r, i in enumerate(sfm.point_ids)}
     colmap_points = _apply(to_mesh, sfm.points)
-    views = tied_views(views)
+    views = photos_in.tied_views(views)
     out["tracks_photos_tied"] = len(views)
     pinhole = False
     for method in TRACK_METHODS:
@@ -202,7 +188,7 @@ def run(config: RunConfig, streams) -> RunResult:
                   registered_share=len(sfm.registered) / len(names), colmap_models=sfm.models,
                   colmap_points=len(sfm.points), points_kept=len(truth))
     facts = {"colmap_version": colmap_sfm.colmap_version(),
-             "matching": colmap_sfm.matching_for(len(names), config["images.matching"]), "warnings": []}
+             "matching": photos_in.matching_for(len(names), config["images.matching"]), "warnings": []}
     cloud = np.zeros((0, 3))
     if len(sfm.registered) >= MIN_ALIGNED and len(sfm.points):
         to_mesh = _to_mesh_frame(sfm, cameras, names, streams["metrics"])

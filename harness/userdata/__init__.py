@@ -4,7 +4,9 @@
 :mod:`.observations` checks the views and makes them observations;
 :mod:`.reconstruct` is the validated front door (``mpe3d reconstruct`` and
 :func:`mpe3d.reconstruct`), returning a typed result; :mod:`.colmap_model`
-reads and writes COLMAP sparse models.
+reads and writes COLMAP sparse models; :mod:`.photos` turns a folder of
+photos or a COLMAP database into keypoint views (SIFT, matches and their
+tracks, by pycolmap).
 
 Readers of other tools' files: :mod:`.bundler` (Bundler and BAL),
 :mod:`.vgg` (VGG's nview-corners tables).
@@ -14,4 +16,4 @@ May import: :mod:`mpe3d.solvers` (the SfM stack included), :mod:`mpe3d.options`,
 :mod:`mpe3d.harness.tracking.identity` (a report says which code made it).
 """
 
-__all__ = ["bundler", "colmap_model", "formats", "observations", "reconstruct", "vgg"]
+__all__ = ["bundler", "colmap_model", "formats", "observations", "photos", "reconstruct", "vgg"]

@@ -203,8 +203,8 @@ def _read_npz(path: Path) -> list[dict]:
 def _read_folder(path: Path) -> list[dict]:
     files = sorted(path.glob("*.npz"))
     if not files:
-        raise MpeError(f"{path}: a folder input needs a COLMAP model (cameras, images, points3D) "
-                       "or one .npz file per view (ids, and xy or dist)")
+        raise MpeError(f"{path}: a folder input needs photos (.jpg, .png, ...), a COLMAP model "
+                       "(cameras, images, points3D) or one .npz file per view (ids, and xy or dist)")
     views = []
     for file in files:
         views += _read_npz(file)
@@ -295,13 +295,19 @@ def content_digest(path: str | Path) -> str:
     return _DIGESTS[stamp]
 
 
-def read_views(path: str | Path) -> list[dict]:
-    """The views of an input file as dicts ``{name, ids, xy | dist}``, not yet checked."""
+def read_views(path: str | Path, matches: str = "raw") -> list[dict]:
+    """The views of an input file as dicts ``{name, ids, xy | dist}``, not yet checked;
+    a folder of photos or a COLMAP database gives its tracks of ``matches``."""
     path = Path(path)
     if path.is_dir():
+        from mpe3d.harness.userdata import photos
         from mpe3d.harness.userdata.colmap_model import looks_like_model, read_model
 
-        return read_model(path) if looks_like_model(path) else _read_folder(path)
+        if looks_like_model(path):
+            return read_model(path)
+        if not any(path.glob("*.npz")) and photos.photo_names(path):
+            return photos.read_photos(path, matches)
+        return _read_folder(path)
     if not path.exists():
         raise MpeError(f"{path}: no such file")
     if not path.is_file():
@@ -311,14 +317,17 @@ def read_views(path: str | Path) -> list[dict]:
     if path.stat().st_size == 0:
         raise MpeError(f"{path}: empty file")
     if reader is None:
-        from mpe3d.harness.userdata import bundler, vgg
+        from mpe3d.harness.userdata import bundler, photos, vgg
+
+        if photos.looks_like_database(path):
+            return photos.read_database(path, matches)
 
         if vgg.sniff(path):  # before BAL: a 3-view table's first row is 3 integers too
             return vgg.read_nview(path)
         if bundler.sniff(path) is None:  # Bundler and BAL files are known by content, any name
             raise MpeError(f"{path}: unknown input format '{path.suffix}' (expected .csv, .npz, "
-                           ".json, a folder of .npz files, a COLMAP model folder, a Bundler "
-                           ".out, a BAL problem or a VGG nview-corners file)")
+                           ".json, a folder of .npz files or photos, a COLMAP model folder or "
+                           "database, a Bundler .out, a BAL problem or a VGG nview-corners file)")
         return bundler.read_bundle_file(path)
     return reader(path)
 

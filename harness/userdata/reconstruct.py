@@ -32,12 +32,13 @@ from mpe3d.options import (
     OBJECTIVES,
     OUTLIER_THRESHOLDS,
     REPROJECTION_LOSSES,
+    REPROJECTION_SOLVERS,
     STARTS,
     STRESS_LOSSES,
 )
 from mpe3d.solvers import Observations
 from mpe3d.solvers.degenerate import check_geometry, collect_notes
-from mpe3d.solvers.sfm import bundle
+from mpe3d.solvers.sfm import bundle, colmap_mapper
 from mpe3d.solvers.sfm.cameras import radial_cameras
 from mpe3d.solvers.sfm.support import FAR_FACTOR, MIN_RAY_ANGLE
 
@@ -57,6 +58,7 @@ class ViewCamera:
     translation_px: np.ndarray | None = None  # (2,) affine
     k1: float | None = None  # radial distortion (the radial camera)
     k2: float | None = None
+    registered: bool = True  # False: COLMAP's mapper left the view out (P is NaN)
 
     @classmethod
     def from_numbers(cls, view: str, numbers: dict) -> "ViewCamera":
@@ -68,6 +70,8 @@ class ViewCamera:
 
     def numbers(self) -> dict[str, Any]:
         """The camera as the report writes it (JSON-ready, fields in the report's order)."""
+        if not self.registered:
+            return {"registered": False}
         if self.rotation is None:
             return {"P": self.P.tolist()}
         if self.focal_px is not None:
@@ -127,6 +131,8 @@ class Problem:
     view_names: list = field(default_factory=list)
     notes: list = field(default_factory=list)
     start: tuple | None = None  # (X, Cameras) from the file (Bundler, BAL), or None: ours
+    image_size: tuple | None = None  # (width, height) of photos, when known
+    focal: float | None = None  # a plausible EXIF focal length in pixels, when known
 
 
 def _check_random_state(random_state) -> None:
@@ -144,7 +150,8 @@ def _check_pair(value, name):
 
 
 def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
-    solvers.get_solver(solver)  # any registered stress solver, a plug-in's too
+    if solver is not None and solver not in REPROJECTION_SOLVERS:
+        solvers.get_solver(solver)  # any registered stress solver, a plug-in's too
     if objective is not None:
         OBJECTIVES.check("objective", objective)
     CAMERAS.check("camera", camera)
@@ -155,11 +162,11 @@ def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
     _check_pair(missing, "missing")
 
 
-def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
+def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | None = None,
             loss: str = "l2", random_state=0, objective: str | None = None,
             camera: str = "auto", missing=None,
             outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None,
-            start: str | None = None) -> Problem:
+            start: str | None = None, matches: str = "raw") -> Problem:
     """Read and check every input of :func:`reconstruct` without solving anything."""
     _check_choices(solver, loss, objective, camera, outlier_threshold, missing)
     if start is not None:  # None: the file's when it has one
@@ -168,7 +175,7 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
     _check_random_state(random_state)
     source = str(views) if isinstance(views, (str, Path)) else "views"
     if isinstance(views, (str, Path)):
-        views = read_views(views)
+        views = read_views(views, matches)
     projections_source = "projections"
     if isinstance(projections, (str, Path)):
         projections_source, projections = str(projections), read_projections(projections)
@@ -176,12 +183,16 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
         projections = np.asarray(projections, dtype=float)
         projections = projections if projections.shape[1:] == (3, 4) else projections[:, :2]
     views, notes = drop_missing(views, missing, source)
+    notes = list(views[0].get("notes", [])) + notes if views else notes  # photos left out
     centres = [view.get("principal_point") for view in views]
     if principal_point is None and centres and all(c is not None for c in centres):
         principal_point = tuple(float(v) for v in centres[0])  # a COLMAP model's cameras
     coordinates = all("xy" in view for view in views)
     if objective is None:
-        objective = "reprojection" if coordinates else "stress"
+        # keypoints pose the reprojection error, unless a stress solver is named
+        objective = "reprojection" if solver in REPROJECTION_SOLVERS or (coordinates and solver is None) \
+            else "stress"
+    solver = _solver_for(objective, solver)
     if objective == "reprojection" and not coordinates:
         raise MpeError(f"{source}: objective='reprojection' needs 2D coordinates (xy) in every "
                        "view; distance matrices allow objective='stress' only")
@@ -199,10 +210,50 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str = 
     if pinhole and len(projections) != obs.n_views:
         raise MpeError(f"{projections_source}: {len(projections)} matrices for {obs.n_views} views")
     names = [str(view.get("name", k)) for k, view in enumerate(views)]
+    if solver == "colmap":
+        _check_colmap(source, camera, loss, projections, start, outlier_threshold)
+        start = "own"  # COLMAP starts from its own initial pair
     file_start = _file_start(views, obs, source, start, objective, camera, projections,
                              principal_point)
     return Problem(obs, ids, solver, loss, random_state, objective, camera, projections,
-                   float(outlier_threshold), principal_point, names, notes, file_start)
+                   float(outlier_threshold), principal_point, names, notes, file_start,
+                   _first(views, "image_size"), _first(views, "focal_px"))
+
+
+def _first(views, key):
+    """A photo set's shared value (image size, EXIF focal length), or None."""
+    values = [view.get(key) for view in views]
+    return values[0] if values and values[0] is not None else None
+
+
+def _solver_for(objective: str, solver: str | None) -> str:
+    """The solver of ``objective``: refine for the stress, bundle adjustment for
+    the reprojection error, unless one of its own is named."""
+    if solver is None:
+        return "refine" if objective == "stress" else "bundle"
+    if objective == "stress" and solver in REPROJECTION_SOLVERS:
+        raise MpeError(f"solver='{solver}' minimises the reprojection error; the stress takes "
+                       "a stress solver (`mpe3d solvers`)")
+    if objective == "reprojection" and solver not in REPROJECTION_SOLVERS:
+        raise MpeError(f"solver='{solver}' is a stress solver; the reprojection objective takes "
+                       f"{' or '.join(REPROJECTION_SOLVERS)} (or give objective='stress')")
+    return solver
+
+
+def _check_colmap(source, camera, loss, projections, start, outlier_threshold):
+    """What COLMAP's mapper cannot be asked: it poses its own cameras from its
+    own start, with its own camera models, loss and filter."""
+    if camera not in colmap_mapper.COLMAP_CAMERAS:
+        raise MpeError(f"camera='{camera}': COLMAP has no affine camera; solver='colmap' takes "
+                       f"camera {', '.join(colmap_mapper.COLMAP_CAMERAS)}")
+    for flag, value, default in (("loss", loss, "l2"), ("start", start, None),
+                                 ("outlier_threshold", outlier_threshold, bundle.OUTLIER_THRESHOLD)):
+        if value not in (default, "own"):
+            raise MpeError(f"{flag}={value!r} is bundle adjustment's; COLMAP's mapper uses its "
+                           "own (a trivial loss, its 4 px filter, its own start)")
+    if projections is not None:
+        raise MpeError(f"{source}: solver='colmap' estimates the cameras; known projections "
+                       "are for solver='bundle'")
 
 
 def _file_start(views, obs, source, start, objective, camera, projections, principal_point):
@@ -260,6 +311,15 @@ def solve_problem(problem: Problem) -> Result:
 
 def _solve_reprojection(problem: Problem, tracks):
     check_geometry(problem.observations)  # one line for what cannot determine a shape
+    if problem.solver == "colmap":
+        from mpe3d.solvers import threads
+
+        seed = problem.random_state if not isinstance(problem.random_state, np.random.Generator) \
+            else int(problem.random_state.integers(2 ** 31))
+        return colmap_mapper.colmap_map(tracks, camera=problem.camera,
+                                        principal_point=problem.principal_point,
+                                        image_size=problem.image_size, focal=problem.focal,
+                                        seed=int(seed), threads=threads.count())
     if problem.cameras is not None:
         return bundle.known_cameras(tracks, problem.cameras, loss=problem.loss,
                                     outlier_threshold=problem.outlier_threshold)
@@ -281,30 +341,37 @@ def stop_notes(fit) -> list[str]:
                                  "may be short of the optimum"]
 
 
-def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str = "refine",
+def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str | None = None,
                 loss: str = "l2", random_state=0, objective: str | None = None,
                 camera: str = "auto", missing=None,
                 outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None,
-                start: str | None = None) -> Result:
+                start: str | None = None, matches: str = "raw") -> Result:
     """Rebuild a 3D cloud from user views.
 
     Parameters
     ----------
-    views : a path (CSV, NPZ, JSON, folder) or a list of ``{"ids", "xy" | "dist"}`` dicts
-        What each view saw: its point ids and their 2D coordinates or distance matrix.
+    views : a path or a list of ``{"ids", "xy" | "dist"}`` dicts
+        What each view saw: its point ids and their 2D coordinates or distance
+        matrix. A path: CSV, NPZ, JSON, a folder of .npz, a COLMAP model, a
+        Bundler/BAL/VGG file, a folder of photos (SIFT features and matches
+        by pycolmap) or a COLMAP ``database.db``.
     projections : None, a path, or an array of K 2x3 / 3x3 / 3x4 matrices, default None
         Known cameras (the fixed setting): orthographic rows or rotations, or
         3x4 pinhole matrices (reprojection only). None estimates them.
-    solver : str, default "refine"
-        The stress solver (``objective="stress"``): any registered solver
-        (``mpe3d solvers``), a plug-in's included.
+    solver : str or None, default None
+        Who minimises the objective. The stress: any registered solver
+        (``mpe3d solvers``, a plug-in's included; None: "refine"). The
+        reprojection error: "bundle" (mpe3d's bundle adjustment; None) or
+        "colmap" (COLMAP's geometric verification and incremental mapper on
+        the same tracks, through pycolmap).
     loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
         rho of the squared residual (reprojection, scale 1 px), or refine's loss
         of the stress (l2, huber, soft_l1).
     random_state : int >= 0 or Generator, default 0
     objective : {None, "reprojection", "stress"}, default None
-        None: the reprojection error for coordinates (bundle adjustment), the
-        3DMPE stress (paper Eq. 1) for distance matrices.
+        None: the reprojection error for coordinates (bundle adjustment)
+        unless a stress solver is named, the 3DMPE stress (paper Eq. 1) for
+        distance matrices.
     camera : {"auto", "orthographic", "scaled", "perspective", "radial"}, default "auto"
         The camera model of the reprojection objective; "auto" fits the scaled
         (weak-perspective) and the pinhole camera and keeps the pinhole when it
@@ -323,9 +390,13 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
         Where bundle adjustment starts: "file" from the cameras (f, k1, k2 per
         view) and points of a Bundler or BAL input, "own" from mpe3d's start;
         None: the file's when it has them.
+    matches : {"raw", "verified"}, default "raw"
+        Photos and COLMAP databases: the tracks join the matcher's raw
+        matches (mpe3d finds the wrong ones itself) or only those COLMAP's
+        geometric verification kept.
     """
     return solve_problem(prepare(views, projections, solver, loss, random_state, objective, camera,
-                         missing, outlier_threshold, principal_point, start))
+                         missing, outlier_threshold, principal_point, start, matches))
 
 
 def _stress_result(problem: Problem, rec, runtime: float, warnings: list[str]) -> Result:
@@ -367,20 +438,28 @@ def _reprojection_result(problem: Problem, tracks, fit, runtime: float,
                     for k, i in zip(tracks.view[fit.dropped], tracks.point[fit.dropped]))
     unplaced = ids[~fit.info["placed"]]
     weak = int(fit.info["weak"].sum())
-    cameras = tuple(ViewCamera.from_numbers(name, numbers)
-                    for name, numbers in zip(names, fit.cameras.matrices()))
+    registered = fit.info.get("registered", np.ones(obs.n_views, dtype=bool))
+    cameras = tuple(ViewCamera.from_numbers(name, numbers) if seen else
+                    ViewCamera(name, np.full((3, 4), np.nan), registered=False)
+                    for name, numbers, seen in zip(names, fit.cameras.matrices(), registered))
     projections = np.asarray(fit.cameras.current_rotations()[:, :2]
                              if fit.cameras.model != "matrix" else problem.cameras)
+    unregistered = [name for name, seen in zip(names, registered) if not seen]
+    if unregistered:
+        warnings = warnings + [f"{int(registered.sum())} of {len(names)} views registered (no pose "
+                               f"agrees with enough of their tracks); left out: {', '.join(unregistered[:10])}"
+                               + (" ..." if len(unregistered) > 10 else "")]
     facts = {
         "points": int(obs.n_points), "views": int(obs.n_views), "objective": "reprojection",
         "setting": "fixed" if problem.cameras is not None else "variable",
-        "camera": fit.camera, "loss": problem.loss,
+        "solver": problem.solver, "camera": fit.camera, "loss": problem.loss,
         "reprojection_rms_px": fit.rms(), "reprojection_rms_px_all": fit.rms(np.ones_like(kept)),
         "rms_px_per_view": per_view,
         "rms_px_by_camera": {model: float(v) for model, v in fit.info["rms_by_camera"].items()},
         "affine_rms_px": None if not np.isfinite(fit.affine_rms) else float(fit.affine_rms),
         "cameras": [{"view": c.view, **c.numbers()} for c in cameras],
-        "projections": projections.tolist(),
+        "unregistered": unregistered,
+        "projections": [p.tolist() if seen else None for p, seen in zip(projections, registered)],
         "dropped": {"count": len(dropped), "threshold_sigmas": problem.outlier_threshold,
                     "observations": [{"view": v, "point": i} for v, i in dropped]},
         "unplaced": {"count": int(len(unplaced)), "ids": unplaced.tolist(),
@@ -390,6 +469,7 @@ def _reprojection_result(problem: Problem, tracks, fit, runtime: float,
                              "the cloud's median radius"},
         "converged": bool(fit.converged), "iterations": int(fit.iterations),
         "termination": fit.termination, "runtime_s": runtime, "code": code_identity(),
+        **({"colmap_seconds": fit.info["seconds"]} if "seconds" in fit.info else {}),
     }
     return Result(points=fit.points, ids=ids, projections=projections, objective="reprojection",
                   cameras=cameras, dropped=dropped, unplaced=unplaced, warnings=warnings,

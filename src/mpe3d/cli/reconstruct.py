@@ -9,7 +9,15 @@ import sys
 from pathlib import Path
 
 from mpe3d.errors import MpeError
-from mpe3d.options import CAMERAS, OBJECTIVES, OUTLIER_THRESHOLD, REPROJECTION_LOSSES, STARTS
+from mpe3d.options import (
+    CAMERAS,
+    MATCHES,
+    OBJECTIVES,
+    OUTLIER_THRESHOLD,
+    REPROJECTION_LOSSES,
+    REPROJECTION_SOLVERS,
+    STARTS,
+)
 
 
 def _pair(text: str):
@@ -22,13 +30,15 @@ def _pair(text: str):
 
 
 def add_parser(sub) -> None:
-    rec = sub.add_parser("reconstruct", help="rebuild a 3D cloud from your own keypoints or "
-                         "distance matrices", description="Read matched 2D keypoints (CSV view,point,x,y; "
-                         "NPZ; JSON; or a folder of .npz per view) or per-view distance matrices, check "
-                         "them, and write the 3D cloud with each point's id.")
-    rec.add_argument("input", metavar="INPUT", help="a .csv, .npz or .json file, a folder of .npz, "
-                     "a COLMAP model folder, a Bundler .out or BAL problem file, or a VGG "
-                     "nview-corners table (its .corners files beside it)")
+    rec = sub.add_parser("reconstruct", help="rebuild a 3D cloud from your photos, keypoints or "
+                         "distance matrices", description="Read photos (SIFT features and matches by "
+                         "pycolmap), matched 2D keypoints (CSV view,point,x,y; NPZ; JSON; a folder of "
+                         ".npz per view; COLMAP, Bundler, BAL, VGG files) or per-view distance matrices, "
+                         "check them, and write the 3D cloud with each point's id.")
+    rec.add_argument("input", metavar="INPUT", help="a folder of photos (one camera), a COLMAP "
+                     "database (database.db) or model folder, a .csv, .npz or .json file, a folder "
+                     "of .npz, a Bundler .out or BAL problem file, or a VGG nview-corners table (its "
+                     ".corners files beside it)")
     rec.add_argument("--out", required=True, metavar="CLOUD",
                      help="output: .ply, .csv or .npy (the cloud, with ids); a folder (a COLMAP "
                      "model); or .out or .bal (Bundler or BAL: pinhole cameras f, k1, k2, the "
@@ -56,9 +66,14 @@ def add_parser(sub) -> None:
                      help="reprojection: drop observations beyond this many robust sigmas as "
                      f"wrong matches (default {OUTLIER_THRESHOLD:g}; inf keeps all, and turns refine's "
                      "rejection rounds off for the stress)")
-    rec.add_argument("--solver", default="refine", metavar="NAME",
-                     help="the stress solver: refine (default) or any other of `mpe3d solvers`, "
-                     "a plug-in's (--plugin) included")
+    rec.add_argument("--solver", metavar="NAME",
+                     help=f"who minimises the objective. Reprojection: {' or '.join(REPROJECTION_SOLVERS)} "
+                     "(default bundle: mpe3d's bundle adjustment; colmap: COLMAP's geometric "
+                     "verification and incremental mapper on the same tracks). Stress: refine "
+                     "(default) or any other of `mpe3d solvers`, a plug-in's (--plugin) included")
+    rec.add_argument("--matches", default="raw", choices=MATCHES.names,
+                     help="photos and COLMAP databases: track the matcher's raw matches (default; "
+                     "wrong ones are found by the solve) or only the geometrically verified ones")
     rec.add_argument("--loss", default="l2", choices=REPROJECTION_LOSSES.names,
                      help="l2 (default), or a robust loss: huber, soft_l1 (cauchy: reprojection only)")
     rec.add_argument("--report", metavar="FILE.json", help="write per-view residuals (pixels "
@@ -87,7 +102,7 @@ def cmd_reconstruct(args) -> int:
                       loss=args.loss, random_state=args.seed, objective=args.objective,
                       camera=args.camera, missing=args.missing,
                       outlier_threshold=args.outlier_threshold,
-                      principal_point=args.principal_point, start=args.start)
+                      principal_point=args.principal_point, start=args.start, matches=args.matches)
     check_ids_fit(out, problem.ids)
     if solution:
         bundler.check_solution_out(out, problem)
@@ -125,7 +140,8 @@ def _summary(summary: dict) -> str:
                 f"worst view RMS residual {worst:.3g}, {summary['unplaced']['count']} unplaced, "
                 f"{summary['runtime_s']:.2f} s")
     worst = max(v for v in summary["rms_px_per_view"] if v is not None)
-    return (where + f"cameras, {summary['camera']} camera, bundle adjustment): reprojection RMS "
+    method = "bundle adjustment" if summary["solver"] == "bundle" else "COLMAP's mapper"
+    return (where + f"cameras, {summary['camera']} camera, {method}): reprojection RMS "
             f"{summary['reprojection_rms_px']:.3g} px (worst view {worst:.3g} px), "
             f"{summary['dropped']['count']} wrong matches dropped, "
             f"{summary['unplaced']['count']} unplaced, {summary['runtime_s']:.2f} s")

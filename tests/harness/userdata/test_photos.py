@@ -1,0 +1,222 @@
+"""Photos and COLMAP databases into `mpe3d reconstruct`, and COLMAP's mapper as a method."""
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from mpe3d.cli import main
+from mpe3d.errors import MpeError
+from mpe3d.harness.scene import photos, shapes
+from mpe3d.harness.userdata import photos as photos_in
+from mpe3d.harness.userdata.formats import read_points
+from mpe3d.harness.userdata.reconstruct import reconstruct
+from mpe3d.solvers.sfm import colmap_mapper
+from mpe3d.solvers.sfm.tracks import Tracks
+from tests.helpers import close_up_keypoints, similarity_rms
+
+pycolmap = pytest.importorskip("pycolmap")
+
+PHOTOS = 12
+
+
+@pytest.fixture(scope="module")
+def shoot(tmp_path_factory):
+    """A dozen photos of the chair along half a turn of the spiral (15 degrees
+    apart, as photogrammetry guides ask), and their cameras."""
+    folder = tmp_path_factory.mktemp("photos") / "chair"
+    cameras = photos.spiral_cameras(PHOTOS, size=320, turns=0.5)
+    names = photos.save_images(photos.render(shapes.load_shape("chair"), cameras, seed=1), folder)
+    return folder, dict(zip(names, cameras.centres))
+
+
+@pytest.fixture(scope="module")
+def database(shoot, tmp_path_factory):
+    folder, _ = shoot
+    path = tmp_path_factory.mktemp("db") / "database.db"
+    photos_in.extract_and_match(path, folder, photos_in.photo_names(folder), camera_model="SIMPLE_RADIAL")
+    return path
+
+
+def _centre_error(report: dict, true_centres: dict) -> float:
+    """RMS camera-centre error after a similarity, in % of the path's extent."""
+    est, true = [], []
+    for camera in report["cameras"]:
+        if camera.get("registered", True):
+            R, t = np.array(camera["rotation"]), np.array(camera["translation"])
+            est.append(-R.T @ t)
+            true.append(true_centres[camera["view"]])
+    true = np.array(true)
+    return 100 * similarity_rms(np.array(est), true) / np.linalg.norm(np.ptp(true, axis=0))
+
+
+@pytest.mark.parametrize("solver", ["bundle", "colmap"])
+def test_a_folder_of_photos_reconstructs_end_to_end(shoot, tmp_path, capsys, solver):
+    folder, true_centres = shoot
+    out, report = tmp_path / "cloud.csv", tmp_path / "report.json"
+    assert main(["reconstruct", str(folder), "--out", str(out), "--report", str(report),
+                 "--solver", solver]) == 0
+    summary = json.loads(report.read_text())
+    assert summary["solver"] == solver and summary["objective"] == "reprojection"
+    registered = [c for c in summary["cameras"] if c.get("registered", True)]
+    assert len(registered) >= 8 and summary["points"] >= 200
+    assert summary["reprojection_rms_px"] < 1.5
+    assert _centre_error(summary, true_centres) < 2.0  # the cameras are where they were
+    points, ids = read_points(out)
+    assert len(points) == len(ids) == summary["points"]  # every track, its id beside it
+    assert summary["unplaced"]["count"] < summary["points"] / 2
+    assert ("COLMAP's mapper" if solver == "colmap" else "bundle adjustment") in capsys.readouterr().out
+
+
+def test_a_photo_reconstruction_writes_a_colmap_model(shoot, tmp_path):
+    folder, _ = shoot
+    model = tmp_path / "model"
+    assert main(["reconstruct", str(folder), "--out", str(model) + "/"]) == 0
+    reread = pycolmap.Reconstruction(str(model))
+    assert reread.num_reg_images() >= 8 and reread.num_points3D() >= 200
+
+
+@pytest.mark.parametrize("matches", ["raw", "verified"])
+def test_a_colmap_database_is_read_by_its_raw_or_verified_matches(database, tmp_path, matches):
+    views = photos_in.read_database(database, matches)
+    assert len(views) >= 8 and all(v["principal_point"] == (160.0, 160.0) for v in views)
+    assert "focal_px" not in views[0]  # rendered PNGs carry no EXIF
+    report = tmp_path / "r.json"
+    assert main(["reconstruct", str(database), "--matches", matches, "--out", str(tmp_path / "c.csv"),
+                 "--report", str(report)]) == 0
+    assert json.loads(report.read_text())["reprojection_rms_px"] < 1.5
+
+
+def test_raw_matches_hold_what_verification_threw_away(database):
+    with pycolmap.Database.open(str(database)) as db:
+        raw = sum(len(m) for m in db.read_all_matches()[1])
+        verified = sum(len(g.inlier_matches) for g in db.read_two_view_geometries()[1])
+    assert raw > verified > 0
+    tracks = {kind: photos_in.match_tracks(database, kind) for kind in ("raw", "verified")}
+    assert tracks["raw"].conflicting > tracks["verified"].conflicting  # wrong matches join tracks
+    with pytest.raises(MpeError, match="matches: 'checked' is not one of raw, verified"):
+        photos_in.match_tracks(database, "checked")
+
+
+def _with_exif(source, folder, focal_35mm):
+    folder.mkdir()
+    for path in sorted(source.glob("*.png"))[:4]:
+        image = Image.open(path).convert("L")
+        exif = image.getexif()
+        exif[0x010F], exif[0x0110] = "Maker", "Model"
+        exif.get_ifd(0x8769)[0xA405] = focal_35mm  # FocalLengthIn35mmFilm
+        image.save(folder / f"{path.stem}.jpg", exif=exif, quality=95)
+    return folder
+
+
+def test_an_exif_focal_length_is_kept_only_when_plausible(shoot, tmp_path):
+    folder, _ = shoot
+    facts = {}
+    for focal_35mm in (40, 212):  # a normal lens; 5.9 times the image side, a stale tag
+        photo_dir = _with_exif(folder, tmp_path / f"f{focal_35mm}", focal_35mm)
+        database = tmp_path / f"f{focal_35mm}.db"
+        photos_in.extract_and_match(database, photo_dir, photos_in.photo_names(photo_dir),
+                                    camera_model="SIMPLE_RADIAL")
+        facts[focal_35mm] = photos_in._camera_facts(database)
+    assert facts[40]["focal_px"] / 320 in photos_in.PLAUSIBLE_FOCAL
+    assert "focal_px" not in facts[212]
+
+
+def test_colmap_solves_any_keypoint_input_with_the_users_ids(tmp_path):
+    views = close_up_keypoints(n=200, views=8)
+    ids = np.arange(200) * 7 + 3  # ids of the user's, not row numbers
+    views = [{"ids": ids[v["ids"]], "xy": v["xy"]} for v in views]
+    result = reconstruct(views, solver="colmap", principal_point=(200.0, 200.0))
+    ours = reconstruct(views, principal_point=(200.0, 200.0))
+    assert result.facts["solver"] == "colmap" and set(result.ids) == set(ids)
+    placed = ~np.isin(result.ids, result.unplaced)
+    assert placed.sum() >= 180 and result.facts["reprojection_rms_px"] < 0.6
+    row = {i: r for r, i in enumerate(ours.ids.tolist())}
+    order = [row[i] for i in result.ids[placed].tolist()]
+    assert similarity_rms(result.points[placed], ours.points[order]) < 1e-2 * np.ptp(ours.points)
+    assert set(result.facts["colmap_seconds"]) == {"verify_s", "map_s"}
+
+
+def test_track_matches_link_every_pair_of_a_tracks_observations():
+    tracks = Tracks(view=np.array([0, 1, 2, 1, 2, 0]), point=np.array([0, 0, 0, 1, 1, 2]),
+                    z=np.zeros((6, 2)), n_points=3, n_views=3)
+    pairs, rows = colmap_mapper.track_matches(tracks)
+    linked = sorted(tuple(sorted(r)) for r in rows.tolist())
+    assert linked == [(0, 1), (0, 2), (1, 2), (3, 4)]
+    assert np.all(pairs[:, 0] < pairs[:, 1]) and np.all(tracks.view[rows] == pairs)
+
+
+def test_colmap_refuses_what_it_cannot_be_asked():
+    views = close_up_keypoints(n=60, views=4)
+    for kwargs, message in (({"camera": "scaled"}, "COLMAP has no affine camera"),
+                            ({"loss": "huber"}, "loss='huber' is bundle adjustment's"),
+                            ({"objective": "stress"}, "minimises the reprojection error"),
+                            ({"projections": np.tile(np.eye(3)[:2], (4, 1, 1))}, "known projections")):
+        with pytest.raises(MpeError, match=message):
+            reconstruct(views, solver="colmap", **kwargs)
+    with pytest.raises(MpeError, match="solver='sgd' is a stress solver"):
+        reconstruct(views, solver="sgd", objective="reprojection")
+    assert reconstruct(views, solver="sgd").objective == "stress"  # a stress solver named: the stress
+
+
+def _unreadable(folder, shoot):
+    (folder / "a.jpg").write_bytes(b"not a jpeg at all")
+    (folder / "b.jpg").write_bytes(b"nor this")
+
+
+def _one(folder, shoot):
+    Image.fromarray(np.zeros((64, 64), dtype=np.uint8)).save(folder / "only.png")
+
+
+def _sizes(folder, shoot):
+    Image.fromarray(np.zeros((64, 64), dtype=np.uint8)).save(folder / "a.png")
+    Image.fromarray(np.zeros((64, 80), dtype=np.uint8)).save(folder / "b.png")
+
+
+def _blank(folder, shoot):  # nothing to match: no two photos share a keypoint
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        Image.fromarray(rng.integers(0, 255, (96, 96), dtype=np.uint8)).save(folder / f"{k}.png")
+
+
+@pytest.mark.parametrize("make, message", [
+    (lambda folder, shoot: None, "a folder input needs photos"),
+    (_unreadable, "not a readable image"),
+    (_one, "1 photo"),
+    (_sizes, "photos of one camera and size are expected"),
+    (_blank, "holds no matches|share 3 or more tracks"),
+])
+def test_bad_photo_folders_get_one_line_and_nothing_written(tmp_path, capsys, shoot, make, message):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    make(folder, shoot)
+    out = tmp_path / "cloud.ply"
+    assert main(["reconstruct", str(folder), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and pytest.importorskip("re").search(message, err), err
+    assert not out.exists()
+
+
+def test_a_database_without_matches_is_one_line(shoot, tmp_path, capsys):
+    folder, _ = shoot
+    database = tmp_path / "database.db"
+    pycolmap.extract_features(database, folder, image_names=photos_in.photo_names(folder)[:3],
+                              device=pycolmap.Device.cpu)
+    out = tmp_path / "cloud.ply"
+    assert main(["reconstruct", str(database), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "holds no matches" in err and not out.exists()
+
+
+def test_photos_colmap_cannot_register_are_one_line(tmp_path, capsys):
+    """Two photos of a flat wall of random texture, one turned: matches, no 3D."""
+    folder = tmp_path / "wall"
+    folder.mkdir()
+    rng = np.random.default_rng(2)
+    texture = np.kron(rng.integers(0, 255, (40, 40)), np.ones((6, 6))).astype(np.uint8)
+    for k in range(3):
+        Image.fromarray(np.roll(texture, 3 * k, axis=1)).save(folder / f"{k}.png")
+    out = tmp_path / "cloud.ply"
+    code = main(["reconstruct", str(folder), "--solver", "colmap", "--out", str(out)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and not out.exists(), err
