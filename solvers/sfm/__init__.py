@@ -3,16 +3,20 @@
 Camera models (:mod:`.cameras`), observations as flat tracks
 (:mod:`.tracks`), two-view checks (:mod:`.epipolar`), triangulation,
 Levenberg-Marquardt with the points eliminated (:mod:`.adjust`), the
-incremental start (:mod:`.incremental`), what a fit rests on
-(:mod:`.support`), the camera models' starts and fits (:mod:`.camera_fits`),
-the rounds of wrong matches (:mod:`.outliers`) and the whole pipeline
-(:mod:`.bundle`, what ``objective="reprojection"`` runs). Its compiled
-kernels sit beside them: :mod:`.kernels` (bundle adjustment's) and
+incremental start (:mod:`.incremental`, affine; :mod:`.pinhole_start`, perspective, grown view
+by view with pycolmap's robust two-view and absolute-pose estimators), what a
+fit rests on (:mod:`.support`), the camera models' starts and fits
+(:mod:`.camera_fits`), the rounds of wrong matches (:mod:`.outliers`) and the
+whole pipeline (:mod:`.bundle`, what ``objective="reprojection"`` runs).
+COLMAP's own mapper on the same tracks is a method beside it
+(:mod:`.colmap_mapper`); :mod:`.colmap_link` imports pycolmap for both. Its
+compiled kernels sit beside them: :mod:`.kernels` (bundle adjustment's) and
 :mod:`.epipolar_kernels` (the two-view tests').
 
 May import: the stress side of :mod:`mpe3d.solvers`, :mod:`mpe3d.options`
 and :mod:`mpe3d.errors`. The stress side never imports this package.
 """
 
-__all__ = ["adjust", "bundle", "camera_fits", "cameras", "epipolar", "epipolar_kernels", "incremental",
-           "kernels", "outliers", "support", "tracks", "triangulation"]
+__all__ = ["adjust", "bundle", "camera_fits", "cameras", "colmap_link", "colmap_mapper", "epipolar",
+           "epipolar_kernels", "incremental", "kernels", "outliers", "pinhole_start", "support", "tracks",
+           "triangulation"]

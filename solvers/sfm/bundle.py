@@ -52,7 +52,7 @@ from mpe3d.solvers.degenerate import warn
 from mpe3d.solvers.linalg import elongation, sum_by
 from mpe3d.solvers.sfm import incremental
 from mpe3d.solvers.sfm.adjust import adjust, one_blas_thread
-from mpe3d.solvers.sfm.camera_fits import FITTERS, scaled_fit
+from mpe3d.solvers.sfm.camera_fits import FITTERS, grown_pinhole, scaled_fit
 from mpe3d.solvers.sfm.cameras import (
     MATRIX,
     PINHOLES,
@@ -86,6 +86,7 @@ _TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins 
 _PLACING_STEPS = 10  # Gauss-Newton steps that put a point seen once on its ray
 AUTO_RATIO = 0.8  # camera="auto" keeps the pinhole below this share of the weak median residual
 DISAGREE_RATIO = 0.5  # another model this much better is said
+GROWN_RATIO = 0.5  # the grown pinhole, leaving views out, is kept below this share of the other's median
 
 
 @dataclass
@@ -171,16 +172,24 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
               "perspective": ("scaled",), "radial": ("scaled",)}
     # the radial camera starts from the pinhole's fit, so that one comes first
     needed = ("perspective",) if camera == "radial" else ()
+    # the observations the pinholes rest on: all, or those of the grown start's model
+    registered, in_model = np.ones(tracks.n_views, dtype=bool), np.ones(len(tracks.view), dtype=bool)
     for model in dict.fromkeys(needed + wanted + ((), others.get(camera, ()))[not exact]):
-        if model not in fits:
+        if model == "perspective" and shared_focal and np.isfinite(outlier_threshold):
+            fits[model], registered, in_model = _perspective_fit(fit, tracks, used, principal_point,
+                                                                 lm_options)
+        elif model not in fits:
+            rows = used & in_model if model in PINHOLES else used
             fits[model] = FITTERS[model](*(fits["perspective"] if model == "radial" else fit)[:2],
-                                          tracks.subset(used), principal_point, shared_focal,
+                                          tracks.subset(rows), principal_point, shared_focal,
                                           lm_options)
-            fits[model], runaways = without_runaways(fits[model], tracks, used, lm_options)
+            fits[model], runaways = without_runaways(fits[model], tracks, rows, lm_options)
             flagged |= runaways  # suspects, as the two-view test's are
-    rms = {model: _rms_of(f, tracks, used) for model, f in fits.items()}
+    # a model is judged on what it rests on: every observation, or the grown start's model
+    rows = {model: used & in_model if model in PINHOLES else used for model in fits}
+    rms = {model: _rms_of(f, tracks, rows[model]) for model, f in fits.items()}
     # the models are judged by their median residual, which wrong matches do not sway
-    median = {model: _median_of(f, tracks, used) for model, f in fits.items()}
+    median = {model: _median_of(f, tracks, rows[model]) for model, f in fits.items()}
     if not np.isfinite(rms[camera if camera != "auto" else "scaled"]):
         raise MpeError("the keypoints do not determine a 3D shape: no start gives finite "
                        "cameras (a planar scene, or too few points shared by the views?)")
@@ -188,18 +197,67 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
         camera = "perspective" if median["perspective"] < AUTO_RATIO * median["scaled"] \
             else "scaled"
     _say_if_the_data_disagree(camera, median)
-    fit, dropped = peel_outliers(fits[camera], tracks, flagged, outlier_threshold, lm_options)
-    return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options)
+    if camera in PINHOLES:
+        flagged |= ~in_model  # a filtered observation is a suspect
+    else:
+        registered = np.ones(tracks.n_views, dtype=bool)
+    if registered.all():
+        fit, dropped = peel_outliers(fits[camera], tracks, flagged, outlier_threshold, lm_options)
+        return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options,
+                       registered)
+    # the views left out stay out: the rest is solved on their observations alone
+    inside = registered[tracks.view]
+    fit, dropped = peel_outliers(fits[camera], tracks.subset(inside), flagged[inside], outlier_threshold,
+                                 lm_options)
+    result = _result(fit, tracks.subset(inside), dropped, camera, max_iter, affine_rms, rms, lm_options,
+                     registered)
+    return _widened(result, tracks, inside)
 
 
-def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options) -> BundleResult:
+def _widened(result: BundleResult, tracks, inside) -> BundleResult:
+    """A result of the registered views' observations over every observation:
+    the others' residuals NaN, neither dropped nor counted."""
+    residuals = np.full((len(tracks.view), 2), np.nan)
+    residuals[inside] = result.residuals
+    dropped, counted = np.zeros(len(tracks.view), dtype=bool), np.zeros(len(tracks.view), dtype=bool)
+    dropped[inside], counted[inside] = result.dropped, result.counted
+    result.residuals, result.dropped, result.counted = residuals, dropped, counted
+    return result
+
+
+def _perspective_fit(scaled, tracks, used, principal_point, lm_options):
+    """The pinhole grown view by view (:func:`.camera_fits.grown_pinhole`) when
+    it registers every view; else the pinhole from the ``scaled`` fit, unless
+    the grown one, leaving views out, has a median residual under GROWN_RATIO
+    times its own (close photos from far apart fold the affine start).
+    Returns the fit, the (K,) views it registers and the (T,) observations it
+    rests on."""
+    everything = np.ones(tracks.n_views, dtype=bool), np.ones(len(tracks.view), dtype=bool)
+    grown = grown_pinhole(tracks.subset(used), principal_point, lm_options)
+    in_model = np.zeros(len(tracks.view), dtype=bool)
+    if grown is not None:
+        in_model[np.flatnonzero(used)[grown[2]]] = True
+    if grown is not None and grown[1].all():
+        return grown[0], grown[1], in_model
+    fit = FITTERS["perspective"](*scaled[:2], tracks.subset(used), principal_point, True, lm_options)
+    fit, _ = without_runaways(fit, tracks, used, lm_options)
+    if grown is None:
+        return fit, *everything
+    other, registered, _ = grown
+    if _median_of(other, tracks, in_model) < GROWN_RATIO * _median_of(fit, tracks, used):
+        return other, registered, in_model
+    return fit, *everything
+
+
+def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options,
+            registered=None) -> BundleResult:
     """The result of a fit: weak points out of it, points seen once placed on
     their rays, every residual."""
     fit, placed, narrow, far = _without_weak(fit, tracks, dropped, lm_options)
     X, cameras, history, converged = fit
     # a narrow point keeps the adjustment's depth (its best guess, and its rays'
     # fit); a far one has none worth keeping: it goes to the cloud's depth
-    X = _place_unplaced(X, cameras, tracks, placed & ~far, ~dropped)
+    X = place_unplaced(X, cameras, tracks, placed & ~far, ~dropped)
     weak = narrow | far
     _say_if_depth_is_free(X, placed, weak, camera)
     placed &= ~weak
@@ -210,7 +268,9 @@ def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options)
                         termination="converged" if converged else f"stopped at max_iter={max_iter}",
                         affine_rms=affine_rms, camera=camera,
                         info={"rms_history": history, "rms_by_camera": rms, "placed": placed,
-                              "weak": weak})
+                              "weak": weak,
+                              "registered": np.ones(tracks.n_views, dtype=bool) if registered is None
+                              else registered})
 
 
 def _counted(dropped, placed_rows):
@@ -334,7 +394,7 @@ def _say_if_the_data_disagree(camera, median):
              f"(camera='{model}')")
 
 
-def _place_unplaced(X, cameras, tracks, placed, kept):
+def place_unplaced(X, cameras, tracks, placed, kept):
     """Points kept in fewer than 2 views, or whose rays meet too narrowly
     (:func:`weak_geometry`), have no depth: each goes where its views put it
     at the depth of the cloud's centre (its other coordinates are

@@ -180,6 +180,22 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, lm_o
     return _best_of(starts, tracks, lm_options)[0]
 
 
+def grown_pinhole(tracks, principal_point, lm_options, focal=None):
+    """The perspective fit from the start grown view by view
+    (:mod:`.pinhole_start`), adjusted to the end over the observations it
+    kept; its (K,) registered views and those (T,) observations. None when no
+    pair of views starts it."""
+    from mpe3d.solvers.sfm.pinhole_start import pinhole_start
+
+    z = tracks.z
+    c = (z.min(axis=0) + z.max(axis=0)) / 2 if principal_point is None \
+        else np.asarray(principal_point, dtype=float)
+    start = pinhole_start(tracks, c, focal)
+    if start is None:
+        return None
+    return adjust(start.X, start.cameras, tracks.subset(start.kept), **lm_options), start.registered, start.kept
+
+
 def _radial(X, pinhole: Cameras, tracks, principal_point, shared_focal, lm_options):
     """From the pinhole's solution, with k1 = k2 = 0: a lens's distortion is a
     small change of a pinhole's images, so its optimum is near."""

@@ -1,0 +1,237 @@
+"""A pinhole start grown view by view, as COLMAP grows its models.
+
+The affine start (:mod:`.incremental`, :mod:`.factorize`) folds when photos
+are taken close to the object from far apart (a chair from 1.5 diagonals,
+30 degrees between photos): the weak perspective that it fits is too far from
+the pinhole for bundle adjustment to find its way back. This start is
+perspective from the first pair on:
+
+1. the initial pair: among the pairs of views sharing the most tracks, the
+   one with the most inliers of an essential matrix (LO-RANSAC, 4 px, by
+   pycolmap at the start focal length) whose inliers meet at a median
+   triangulation angle of at least :data:`INIT_ANGLE` degrees;
+2. registration: the view seeing the most placed points is resected by
+   P3P in LO-RANSAC and refined (pycolmap's absolute pose), then the tracks
+   it completes are triangulated (DLT, kept when their rays meet at
+   :data:`~.support.MIN_RAY_ANGLE` degrees or more and they reproject
+   within :data:`MAX_ERROR` px);
+3. bundle adjustment (ours, :func:`.adjust.adjust`, one focal length for
+   all views) each time the model has grown by :data:`GROWTH`, observations
+   beyond :data:`MAX_ERROR` px left out after it: COLMAP's filter.
+
+Views it cannot register stay out (``registered`` False), as COLMAP's
+mapper leaves them out. The start focal length is a trusted prior's, or
+1.2 times the larger image side (COLMAP's).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from mpe3d.solvers.sfm.adjust import adjust
+from mpe3d.solvers.sfm.cameras import Cameras
+from mpe3d.solvers.sfm.colmap_link import require_pycolmap
+from mpe3d.solvers.sfm.support import MIN_RAY_ANGLE
+from mpe3d.solvers.sfm.tracks import Tracks
+from mpe3d.solvers.sfm.triangulation import dlt_rows, least_squares_points, ray_directions, widest_angles
+
+INIT_CANDIDATES = 20  # pairs sharing the most tracks, tried as the initial pair
+INIT_ANGLE = 4.0  # degrees: the initial pair's median triangulation angle, at least
+MIN_INLIERS = 30  # the initial pair's essential-matrix inliers, at least
+MIN_RESECTION = 12  # placed points a view must see, and P3P inliers it must have
+MAX_ERROR = 4.0  # pixels: RANSAC's threshold and the filter's (COLMAP's)
+GROWTH = 1.25  # bundle adjustment when the registered views grew by this factor
+ROUND_OPTIONS = {"max_iter": 20, "tol": 1e-6}  # the start's adjustments are not the last word
+
+
+@dataclass
+class PinholeStart:
+    """Points and perspective cameras of the views registered, and what is in the model."""
+
+    X: np.ndarray  # (N, 3)
+    cameras: Cameras  # perspective, one focal length; unregistered views: identity
+    placed: np.ndarray  # (N,) bool
+    registered: np.ndarray  # (K,) bool
+    kept: np.ndarray  # (T,) bool: observations within MAX_ERROR px of their placed point
+
+
+def _colmap_camera(pycolmap, focal, c, tracks):
+    """COLMAP's camera of ours: its size only has to hold the keypoints (they
+    may be centred on the principal point, as Bundler's and BAL's are)."""
+    width, height = np.ceil(2 * np.max(np.abs(tracks.z - c), axis=0)).astype(int) + 1
+    return pycolmap.Camera(model="SIMPLE_PINHOLE", width=int(width), height=int(height),
+                           params=[focal, c[0], c[1]])
+
+
+def _cameras(R, t, focal, c) -> Cameras:
+    params = np.concatenate([np.zeros((len(R), 3)), t], axis=1)
+    return Cameras("perspective", R.copy(), params, np.array([np.log(focal)]), np.asarray(c, dtype=float))
+
+
+def pinhole_start(tracks: Tracks, principal_point, focal: float | None = None,
+                  seed: int = 0) -> PinholeStart | None:
+    """The start of the module doc, or None when no pair of views makes one."""
+    pycolmap = require_pycolmap()
+    c = np.asarray(principal_point, dtype=float)
+    f = float(focal) if focal is not None else 1.2 * float(np.max(2 * np.abs(tracks.z - c)))
+    state = _initial(pycolmap, tracks, f, c, seed)
+    if state is None:
+        return None
+    failed: set[int] = set()
+    adjusted_at = 2
+    while True:
+        k = _next_view(tracks, state, failed)
+        if k is None:
+            break
+        if not _resect(pycolmap, tracks, state, k, seed):
+            failed.add(k)
+            continue
+        _triangulate(tracks, state)
+        if state.registered.sum() >= GROWTH * adjusted_at:
+            _adjust(tracks, state)
+            adjusted_at = int(state.registered.sum())
+            failed.clear()  # better cameras: try them again
+    _adjust(tracks, state)
+    return state
+
+
+def _initial(pycolmap, tracks, f, c, seed) -> PinholeStart | None:
+    K, N = tracks.n_views, tracks.n_points
+    seen = np.zeros((K, N), dtype=bool)
+    seen[tracks.view, tracks.point] = True
+    shared = seen.astype(np.int32) @ seen.T.astype(np.int32)
+    np.fill_diagonal(shared, 0)
+    a_idx, b_idx = np.triu_indices(K, 1)
+    order = np.argsort(-shared[a_idx, b_idx], kind="stable")[:INIT_CANDIDATES]
+    camera = _colmap_camera(pycolmap, f, c, tracks)
+    ransac = pycolmap.RANSACOptions()
+    ransac.max_error = MAX_ERROR
+    ransac.random_seed = seed
+    best, best_score = None, 0.0
+    for a, b in zip(a_idx[order], b_idx[order]):
+        if shared[a, b] < MIN_INLIERS:
+            break
+        common = np.flatnonzero(seen[a] & seen[b])
+        za, zb = _rows_of(tracks, a, common), _rows_of(tracks, b, common)
+        found = pycolmap.estimate_essential_matrix(tracks.z[za], tracks.z[zb], camera, camera, ransac)
+        if found is None or found["num_inliers"] < MIN_INLIERS:
+            continue
+        pose = found["cam2_from_cam1"]
+        inliers = common[np.asarray(found["inlier_mask"], dtype=bool)]
+        state = _pair_state(tracks, a, b, pose, inliers, f, c)
+        if state.placed.sum() < MIN_INLIERS:
+            continue
+        rays, point, lines = _rays(tracks, state, np.flatnonzero(state.placed))
+        angles = widest_angles(rays, point, N, lines)[state.placed]
+        score = state.placed.sum() * min(1.0, float(np.median(angles)) / INIT_ANGLE)
+        if score > best_score:
+            best, best_score = state, score
+    if best is None:
+        return None
+    _triangulate(tracks, best)
+    _adjust(tracks, best)
+    return best
+
+
+def _rows_of(tracks, k, points):
+    """The rows of view ``k``'s observations of ``points`` (each seen there once)."""
+    rows = np.flatnonzero(tracks.view == k)
+    order = np.argsort(tracks.point[rows])
+    return rows[order][np.searchsorted(tracks.point[rows][order], points)]
+
+
+def _pair_state(tracks, a, b, pose, inliers, f, c) -> PinholeStart:
+    K, N = tracks.n_views, tracks.n_points
+    R, t = np.tile(np.eye(3), (K, 1, 1)), np.zeros((K, 3))
+    R[b], t[b] = np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)
+    registered = np.zeros(K, dtype=bool)
+    registered[[a, b]] = True
+    state = PinholeStart(np.zeros((N, 3)), _cameras(R, t, f, c), np.zeros(N, dtype=bool), registered,
+                         np.zeros(len(tracks.view), dtype=bool))
+    candidates = np.zeros(N, dtype=bool)
+    candidates[inliers] = True
+    _triangulate(tracks, state, candidates)
+    return state
+
+
+def _rays(tracks, state, points):
+    rows = np.flatnonzero(np.isin(tracks.point, points) & state.registered[tracks.view])
+    rays, lines = ray_directions(state.cameras.projection_matrices(), state.X, tracks.view[rows],
+                                 tracks.point[rows])
+    return rays, tracks.point[rows], lines
+
+
+def _triangulate(tracks, state, candidates=None) -> None:
+    """Place the unplaced points (or ``candidates``) seen in 2 registered views
+    or more, where their rays meet widely and they reproject within MAX_ERROR px."""
+    N = tracks.n_points
+    rows = state.registered[tracks.view]
+    counts = np.bincount(tracks.point[rows], minlength=N)
+    wanted = (counts >= 2) & (~state.placed if candidates is None else candidates)
+    rows &= wanted[tracks.point]
+    if not rows.any():
+        return
+    P = state.cameras.projection_matrices()
+    A, b = dlt_rows(P, tracks.view[rows], tracks.z[rows])
+    X = state.X.copy()
+    X[wanted] = least_squares_points(A, b, tracks.point[rows], N)[wanted]
+    error = np.linalg.norm(state.cameras.project(X, tracks.view[rows], tracks.point[rows]) - tracks.z[rows],
+                           axis=1)
+    good = np.ones(N, dtype=bool)
+    bad_points = tracks.point[rows][~(error <= MAX_ERROR)]  # nan: behind a camera
+    good[bad_points] = False
+    rays, lines = ray_directions(P, X, tracks.view[rows], tracks.point[rows])
+    wide = widest_angles(rays, tracks.point[rows], N, lines) >= MIN_RAY_ANGLE
+    new = wanted & good & wide
+    state.X[new] = X[new]
+    state.placed |= new
+    state.kept |= rows & new[tracks.point]
+
+
+def _next_view(tracks, state, failed) -> int | None:
+    rows = state.placed[tracks.point] & ~state.registered[tracks.view]
+    counts = np.bincount(tracks.view[rows], minlength=tracks.n_views).astype(float)
+    counts[list(failed)] = 0
+    k = int(np.argmax(counts))
+    return k if counts[k] >= MIN_RESECTION else None
+
+
+def _resect(pycolmap, tracks, state, k, seed) -> bool:
+    rows = np.flatnonzero((tracks.view == k) & state.placed[tracks.point])
+    camera = _colmap_camera(pycolmap, float(state.cameras.focal()[0]), state.cameras.principal_point, tracks)
+    estimation = pycolmap.AbsolutePoseEstimationOptions()
+    estimation.ransac.max_error = MAX_ERROR
+    estimation.ransac.random_seed = seed
+    found = pycolmap.estimate_and_refine_absolute_pose(tracks.z[rows], state.X[tracks.point[rows]], camera,
+                                                       estimation)
+    if found is None or found["num_inliers"] < MIN_RESECTION:
+        return False
+    pose = found["cam_from_world"]
+    cameras = state.cameras.reanchored()
+    cameras.rotations[k] = np.asarray(pose.rotation.matrix())
+    cameras.params[k, 3:6] = np.asarray(pose.translation)
+    state.cameras = cameras
+    state.registered[k] = True
+    state.kept[rows[np.asarray(found["inlier_mask"], dtype=bool)]] = True
+    return True
+
+
+def _adjust(tracks, state) -> None:
+    """Bundle adjustment of the registered views and placed points, then
+    COLMAP's filter: observations beyond MAX_ERROR px out, points left in
+    fewer than 2 views unplaced."""
+    rows = state.kept & state.placed[tracks.point] & state.registered[tracks.view]
+    sub = tracks.subset(rows)
+    per_view = state.cameras.per_view
+    frozen = np.zeros(state.cameras.vector().size, dtype=bool)
+    frozen[:len(state.registered) * per_view] = np.repeat(~state.registered, per_view)
+    fit = adjust(state.X, state.cameras, sub, frozen=frozen, **ROUND_OPTIONS)
+    if np.all(np.isfinite(fit.X)) and np.isfinite(fit.history[-1]):
+        state.X, state.cameras = fit.X, fit.cameras
+    error = np.linalg.norm(state.cameras.project(state.X, tracks.view, tracks.point) - tracks.z, axis=1)
+    state.kept &= error <= MAX_ERROR
+    counts = np.bincount(tracks.point[state.kept & state.registered[tracks.view]], minlength=tracks.n_points)
+    state.placed &= counts >= 2
+    state.kept &= state.placed[tracks.point]
