@@ -24,6 +24,7 @@ from mpe3d.options import (
     OUTLIER_THRESHOLDS,
     PROJECTIONS,
     REPROJECTION_LOSSES,
+    REPROJECTION_SOLVERS,
     STARTS,
     STRESS_LOSSES,
     Choice,
@@ -85,6 +86,7 @@ KEYS: dict[str, Key] = {
     "tracks.camera": Key("auto", str, "pipeline tracks, objective reprojection: the camera model (auto: scaled or perspective, whichever explains the keypoints better; radial: the Bundler/BAL pinhole with k1, k2)", CAMERAS, hashed_at_default=False),
     "tracks.loss": Key("l2", str, "pipeline tracks: the robust loss of the reprojection error (scale 1 px), or refine's loss of the stress (l2, huber, soft_l1)", REPROJECTION_LOSSES, hashed_at_default=False),
     "tracks.outlier_threshold": Key(OUTLIER_THRESHOLD, float, "pipeline tracks, objective reprojection: observations beyond this many robust sigmas are taken for wrong matches and dropped (.inf keeps all)", hashed_at_default=False, rule=OUTLIER_THRESHOLDS, unit="(.inf keeps every observation)"),
+    "tracks.solver": Key("bundle", str, "pipeline tracks, objective reprojection: who minimises the reprojection error, mpe3d's bundle adjustment or COLMAP's geometric verification and incremental mapper (pycolmap) on the same perturbed tracks (camera auto, radial or perspective; loss l2; start own)", REPROJECTION_SOLVERS, hashed_at_default=False),
     "tracks.start": Key("own", str, "pipeline tracks: where bundle adjustment starts: mpe3d's own start, or the cameras and points of a Bundler or BAL file", STARTS, hashed_at_default=False),
     "images.count": Key(250, int, "pipeline colmap: photos rendered along the camera spiral", hashed_at_default=False, rule=Interval(int, 2, None)),
     "images.size": Key(400, int, "pipeline colmap: width and height of each photo in pixels", hashed_at_default=False, rule=Interval(int, 64, 4096), unit="pixels"),
@@ -350,6 +352,11 @@ def _check_tracks(v: dict[str, Any], bad) -> None:
             hint = " (relative paths are under tracks.root=FOLDER, else the current folder)" \
                 if v["tracks.root"] is None and not path.is_absolute() else ""
             raise MpeError(f"{key}: {path}: no such file or folder{hint}", key=key)
+    if v["tracks.solver"] == "colmap" and v["tracks.objective"] == "reprojection":
+        for key, allowed in (("tracks.camera", ("auto", "radial", "perspective")), ("tracks.loss", ("l2",)),
+                             ("tracks.start", ("own",)), ("tracks.outlier_threshold", (OUTLIER_THRESHOLD,))):
+            if v[key] not in allowed:
+                raise bad(key, f"tracks.solver=colmap takes {' or '.join(allowed)} (COLMAP's mapper)")
     if v["tracks.objective"] == "stress":  # solver.name: any registered solver (make_config checks it)
         if v["tracks.loss"] not in STRESS_LOSSES:
             raise bad("tracks.loss", f"the stress takes {' or '.join(STRESS_LOSSES)}")

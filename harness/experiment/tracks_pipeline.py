@@ -114,7 +114,7 @@ def perturb(views: list[dict], drop: float, wrong: float, noise_px: float,
 
 def _problem(config: RunConfig, views: list[dict], rng):
     objective = config["tracks.objective"]
-    return prepare(views, solver=config.solver if objective == "stress" else "refine",
+    return prepare(views, solver=config.solver if objective == "stress" else config["tracks.solver"],
                    loss=config["tracks.loss"], random_state=rng, objective=objective,
                    camera=config["tracks.camera"] if objective == "reprojection" else "auto",
                    outlier_threshold=config["tracks.outlier_threshold"],
@@ -149,7 +149,9 @@ def _reprojection_scores(result: Result, perturbed: Perturbed, problem) -> dict[
         return float(np.sqrt(np.mean(np.sum(r ** 2, axis=1)))) if len(r) else float("nan")
 
     dropped = ~counted & placed
-    return {"rms_px": rms(residuals[counted]), "rms_px_all": rms(residuals),
+    posed = np.all(np.isfinite(residuals), axis=1)  # a view the mapper left out has no residual
+    rows &= posed
+    return {"rms_px": rms(residuals[counted]), "rms_px_all": rms(residuals[posed]),
             "rms_px_clean": rms(on_clean[rows]), "caught": int(np.sum(dropped & perturbed.wrong)),
             "clean_dropped": int(np.sum(dropped & ~perturbed.wrong))}
 
@@ -210,19 +212,48 @@ def _reference(config: RunConfig):
     return truth, reference
 
 
+def _unregistered(config: RunConfig, perturbed: Perturbed, problem, error: MpeError) -> RunResult:
+    """The run of a mapper that registered no two views: no cloud, every score but
+    the counts undefined (NaN), the reason among its warnings."""
+    obs = problem.observations
+    nan = float("nan")
+    scores = {"observations": len(perturbed.clean), "removed": perturbed.removed,
+              "wrong": int(perturbed.wrong.sum()), "views_kept": obs.n_views, "tracks": obs.n_points,
+              "dropped": 0, "unplaced": obs.n_points, "converged": 0.0, "registered_views": 0,
+              "iterations": 0, "runtime_s": nan, "rms_px": nan, "rms_px_all": nan, "rms_px_clean": nan,
+              "caught": 0, "clean_dropped": 0}
+    recon = solvers.Reconstruction(points=np.zeros((0, 3)), projections=np.zeros((0, 2, 3)), stress=nan,
+                                   stress_history=np.zeros(0), iterations=0, termination=str(error),
+                                   runtime_s=nan)
+    scene = Scene(mesh=None, points=np.zeros((0, 3)), rotations=np.tile(np.eye(3), (obs.n_views, 1, 1)),
+                  visible=obs.visibility().astype(bool))
+    facts = {"warnings": list(perturbed.notes) + [str(error)],
+             "tracks_sha256": content_digest(track_file(config.values, "tracks.path")),
+             "camera_fitted": "none"}
+    return RunResult(config=config, metrics=scores, scene=scene, reconstruction=recon,
+                     aligned=np.zeros((0, 3)), facts=facts)
+
+
 def run(config: RunConfig, streams) -> RunResult:
     """Read, perturb, solve, score; the solver only ever sees the perturbed keypoints."""
     views = read_data(config)
     perturbed = perturb(views, config["tracks.drop_fraction"], config["tracks.wrong_fraction"],
                         config["tracks.noise_px"], streams["noise"])
     problem = _problem(config, perturbed.views, streams["solver"])
-    result = solve_problem(problem)
+    try:
+        result = solve_problem(problem)
+    except MpeError as exc:
+        if problem.solver != "colmap":
+            raise
+        return _unregistered(config, perturbed, problem, exc)  # a method that places nothing is a result
     report = result.report
     scores: dict[str, float] = {
         "observations": len(perturbed.clean), "removed": perturbed.removed,
         "wrong": int(perturbed.wrong.sum()), "views_kept": problem.observations.n_views,
         "tracks": problem.observations.n_points, "dropped": len(result.dropped),
         "unplaced": len(result.unplaced), "converged": float(report.get("converged", True)),
+        "registered_views": sum(c.registered for c in result.cameras) if result.cameras
+        else problem.observations.n_views,
         "iterations": int(report["iterations"]), "runtime_s": float(report["runtime_s"])}
     scores.update(_reprojection_scores(result, perturbed, problem))
     placed = ~np.isin(result.ids, result.unplaced)
@@ -250,10 +281,11 @@ def run(config: RunConfig, streams) -> RunResult:
 
 
 def method_name(config) -> str:
-    """How a tracks run is named in tables: bundle adjustment with its camera, or the stress solver."""
+    """How a tracks run is named in tables: bundle adjustment or COLMAP's mapper with its
+    camera, or the stress solver."""
     if config["tracks.objective"] == "stress":
         return f"stress ({config['solver.name']})"
-    return f"bundle ({config['tracks.camera']})"
+    return f"{config['tracks.solver']} ({config['tracks.camera']})"
 
 
 def title(result: RunResult) -> str:
