@@ -23,7 +23,8 @@ only use of ground truth before scoring); then
   (``runtime_s``), COLMAP's is its verification plus mapping only (the
   database it is handed is not counted), at the same thread count.
 
-``--photos DIR`` adds real photo folders (no reference): both methods on the
+``--summarise LINES.jsonl`` prints the shape x size table of a run's lines
+(medians over seeds, ours / COLMAP's). ``--photos DIR`` adds real photo folders (no reference): both methods on the
 same tracks, COLMAP's camera centres against ours after a similarity (in %
 of the centres' extent), reprojection RMS, registered views, time. A real
 set fetched for this goes to a scratch folder, never into the repository.
@@ -173,6 +174,41 @@ def real_case(folder: Path, seed: int, count_threads: int) -> dict:
     return line
 
 
+CELL_KEYS = ("median_pct", "p90_pct", "centre_pct")  # lower is better, ours against COLMAP's
+
+
+def _median(values):
+    values = [v for v in values if v is not None]
+    return float(np.median(values)) if values else None
+
+
+def summarise(lines: list[dict]) -> str:
+    """The shape x size cells as a Markdown table: each metric's median over
+    the seeds, ours / COLMAP's, and whether ours is at least as good in all
+    three errors and registers at least as many views."""
+    cells: dict[tuple, list] = {}
+    for line in lines:
+        if "case" in line and "shape" in line:
+            cells.setdefault((line["shape"], line["photos"]), []).append(line)
+    rows = ["| shape | photos | 3D median % | 3D 90th pct % | centre % | registered | time s | ours wins |",
+            "|---|---|---|---|---|---|---|---|"]
+    won = 0
+    for (shape, count), cases in sorted(cells.items()):
+        got = {m: {k: _median([c.get(m, {}).get(k) for c in cases]) for k in (*CELL_KEYS, "registered", "time_s")}
+               for m in ("bundle", "colmap")}
+        ours, theirs = got["bundle"], got["colmap"]
+        wins = all(ours[k] is not None and (theirs[k] is None or ours[k] <= theirs[k]) for k in CELL_KEYS) \
+            and (ours["registered"] or 0) >= (theirs["registered"] or 0)
+        won += wins
+
+        shown = {k: " / ".join("-" if v is None else f"{v:.3g}" for v in (ours[k], theirs[k]))
+                 for k in (*CELL_KEYS, "registered", "time_s")}
+        rows.append(f"| {shape} | {count} | {' | '.join(shown.values())} | {'yes' if wins else 'no'} |")
+    rows.append(f"\nours at least as good in {won} of {len(cells)} cells (each value: ours / COLMAP's, "
+                "the median over seeds)")
+    return "\n".join(rows)
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--shapes", nargs="+", default=["airplane", "chair", "lamp"])
@@ -181,7 +217,12 @@ def main(argv=None) -> int:
     parser.add_argument("--size", type=int, default=400, help="photo side in pixels")
     parser.add_argument("--threads", type=int, default=1, help="both methods' thread count")
     parser.add_argument("--photos", nargs="*", default=[], type=Path, help="real photo folders")
+    parser.add_argument("--summarise", type=Path, metavar="LINES.jsonl",
+                        help="print the shape x size table of an earlier run's lines, and stop")
     args = parser.parse_args(argv)
+    if args.summarise:
+        print(summarise([json.loads(line) for line in args.summarise.read_text().splitlines() if line.strip()]))
+        return 0
     print(json.dumps({"machine": describe()}), flush=True)
     with threads.limit(args.threads):
         for shape in args.shapes:

@@ -223,7 +223,7 @@ def read_database(path: str | Path, matches: str = "raw") -> list[dict]:
         f"{len(views) - len(tied)} photo(s) share too few tracks with the largest group of "
         f"{len(tied)}: left out ({', '.join(v['name'] for v in views if all(v is not t for t in tied))[:200]})"]
     facts = _camera_facts(path)
-    return [{**view, **facts, "notes": notes} for view in tied]
+    return [{**view, **facts, "notes": notes, "matches": matches} for view in tied]
 
 
 def _check_photos(folder: Path, names: list[str]) -> tuple[int, int]:

@@ -155,7 +155,8 @@ def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
     if objective is not None:
         OBJECTIVES.check("objective", objective)
     CAMERAS.check("camera", camera)
-    REPROJECTION_LOSSES.check("loss", loss)
+    if loss is not None:
+        REPROJECTION_LOSSES.check("loss", loss)
     if isinstance(outlier_threshold, bool) or not isinstance(outlier_threshold, (int, float)):
         raise MpeError(f"outlier_threshold: expected a number, got {outlier_threshold!r}")
     OUTLIER_THRESHOLDS.check("outlier_threshold", outlier_threshold, "(inf keeps every observation)")
@@ -163,7 +164,7 @@ def _check_choices(solver, loss, objective, camera, outlier_threshold, missing):
 
 
 def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | None = None,
-            loss: str = "l2", random_state=0, objective: str | None = None,
+            loss: str | None = None, random_state=0, objective: str | None = None,
             camera: str = "auto", missing=None,
             outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None,
             start: str | None = None, matches: str = "raw") -> Problem:
@@ -193,6 +194,7 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
         objective = "reprojection" if solver in REPROJECTION_SOLVERS or (coordinates and solver is None) \
             else "stress"
     solver = _solver_for(objective, solver)
+    loss = _loss_for(views, objective, solver) if loss is None else loss
     if objective == "reprojection" and not coordinates:
         raise MpeError(f"{source}: objective='reprojection' needs 2D coordinates (xy) in every "
                        "view; distance matrices allow objective='stress' only")
@@ -224,6 +226,15 @@ def _first(views, key):
     """A photo set's shared value (image size, EXIF focal length), or None."""
     values = [view.get(key) for view in views]
     return values[0] if values and values[0] is not None else None
+
+
+def _loss_for(views, objective: str, solver: str) -> str:
+    """The default loss: soft_l1 (scale 1 px) for bundle adjustment of SIFT
+    tracks from photos or a COLMAP database, whose matches hold near misses
+    within any threshold's reach (COLMAP's own bundle adjustment of them is
+    robust too); l2 for everything else."""
+    from_matcher = bool(views) and all("matches" in view for view in views)
+    return "soft_l1" if objective == "reprojection" and solver == "bundle" and from_matcher else "l2"
 
 
 def _solver_for(objective: str, solver: str | None) -> str:
@@ -342,7 +353,7 @@ def stop_notes(fit) -> list[str]:
 
 
 def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: str | None = None,
-                loss: str = "l2", random_state=0, objective: str | None = None,
+                loss: str | None = None, random_state=0, objective: str | None = None,
                 camera: str = "auto", missing=None,
                 outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None,
                 start: str | None = None, matches: str = "raw") -> Result:
@@ -364,9 +375,10 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
         reprojection error: "bundle" (mpe3d's bundle adjustment; None) or
         "colmap" (COLMAP's geometric verification and incremental mapper on
         the same tracks, through pycolmap).
-    loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
+    loss : {None, "l2", "huber", "soft_l1", "cauchy"}, default None
         rho of the squared residual (reprojection, scale 1 px), or refine's loss
-        of the stress (l2, huber, soft_l1).
+        of the stress (l2, huber, soft_l1). None: soft_l1 for bundle
+        adjustment of tracks from photos or a COLMAP database, l2 otherwise.
     random_state : int >= 0 or Generator, default 0
     objective : {None, "reprojection", "stress"}, default None
         None: the reprojection error for coordinates (bundle adjustment)

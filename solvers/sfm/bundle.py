@@ -154,11 +154,18 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     if grown is not None and np.isfinite(outlier_threshold):  # its left-outs are suspects too
         flagged[np.flatnonzero(used)[grown.left_out]] = True
         used = informative(tracks, ~flagged)
-    # a pinhole asked for: the scaled fit is its start, which needs no more than
-    # START_ITERATIONS (the weak perspective of pinhole photos converges slowly:
-    # COLMAP's 250-photo spiral ran to 100 iterations, 12 s, for the same pinhole)
-    start_options = lm_options if camera in ("auto", "orthographic", "scaled") \
-        else {**lm_options, "max_iter": min(lm_options["max_iter"], START_ITERATIONS)}
+    # the pinhole grown view by view, where a pinhole may be kept
+    early = grown_pinhole(tracks.subset(used), principal_point, lm_options) \
+        if camera in ("auto", *PINHOLES) and shared_focal and np.isfinite(outlier_threshold) else None
+    every_view = early is not None and early[1].all()
+    # a pinhole asked for, or grown over every view: the scaled fit is its start
+    # or its rival, which needs no more than START_ITERATIONS to be judged (the
+    # weak perspective of pinhole photos converges slowly: COLMAP's 250-photo
+    # spiral ran to 100 iterations, 12 s, for the same pinhole); it is solved
+    # to the end if it is kept
+    short = camera in PINHOLES or (camera == "auto" and every_view)
+    start_options = {**lm_options, "max_iter": min(lm_options["max_iter"], START_ITERATIONS)} \
+        if short else lm_options
     fit, affine_rms = scaled_fit(tracks.subset(used), start_options,
                               None if grown is None else grown[:2])  # (X, cameras)
     # The models are compared on the same observations, before any is dropped:
@@ -175,8 +182,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     # the observations the pinholes rest on: all, or those of the grown start's model
     registered, in_model = np.ones(tracks.n_views, dtype=bool), np.ones(len(tracks.view), dtype=bool)
     for model in dict.fromkeys(needed + wanted + ((), others.get(camera, ()))[not exact]):
-        if model == "perspective" and shared_focal and np.isfinite(outlier_threshold):
-            fits[model], registered, in_model = _perspective_fit(fit, tracks, used, principal_point,
+        if model == "perspective" and early is not None:
+            fits[model], registered, in_model = _perspective_fit(fit, early, tracks, used, principal_point,
                                                                  lm_options)
         elif model not in fits:
             rows = used & in_model if model in PINHOLES else used
@@ -201,6 +208,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
         flagged |= ~in_model  # a filtered observation is a suspect
     else:
         registered = np.ones(tracks.n_views, dtype=bool)
+        if short and camera == "scaled":  # kept after a short solve: solved to the end
+            fits[camera] = adjust(*fits[camera][:2], tracks.subset(used), **lm_options)
     if registered.all():
         fit, dropped = peel_outliers(fits[camera], tracks, flagged, outlier_threshold, lm_options)
         return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options,
@@ -225,7 +234,7 @@ def _widened(result: BundleResult, tracks, inside) -> BundleResult:
     return result
 
 
-def _perspective_fit(scaled, tracks, used, principal_point, lm_options):
+def _perspective_fit(scaled, grown, tracks, used, principal_point, lm_options):
     """The pinhole grown view by view (:func:`.camera_fits.grown_pinhole`) when
     it registers every view; else the pinhole from the ``scaled`` fit, unless
     the grown one, leaving views out, has a median residual under GROWN_RATIO
@@ -233,7 +242,6 @@ def _perspective_fit(scaled, tracks, used, principal_point, lm_options):
     Returns the fit, the (K,) views it registers and the (T,) observations it
     rests on."""
     everything = np.ones(tracks.n_views, dtype=bool), np.ones(len(tracks.view), dtype=bool)
-    grown = grown_pinhole(tracks.subset(used), principal_point, lm_options)
     in_model = np.zeros(len(tracks.view), dtype=bool)
     if grown is not None:
         in_model[np.flatnonzero(used)[grown[2]]] = True

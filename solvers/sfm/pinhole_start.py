@@ -37,7 +37,8 @@ from mpe3d.solvers.sfm.support import MIN_RAY_ANGLE
 from mpe3d.solvers.sfm.tracks import Tracks
 from mpe3d.solvers.sfm.triangulation import dlt_rows, least_squares_points, ray_directions, widest_angles
 
-INIT_CANDIDATES = 20  # pairs sharing the most tracks, tried as the initial pair
+INIT_CANDIDATES = 8  # pairs sharing the most tracks, tried as the initial pair
+RANSAC_TRIALS = 2000  # at most, per essential matrix or pose (COLMAP's 10,000 chase a raw pair's outliers)
 INIT_ANGLE = 4.0  # degrees: the initial pair's median triangulation angle, at least
 MIN_INLIERS = 30  # the initial pair's essential-matrix inliers, at least
 MIN_RESECTION = 12  # placed points a view must see, and P3P inliers it must have
@@ -109,6 +110,7 @@ def _initial(pycolmap, tracks, f, c, seed) -> PinholeStart | None:
     ransac = pycolmap.RANSACOptions()
     ransac.max_error = MAX_ERROR
     ransac.random_seed = seed
+    ransac.max_num_trials = RANSAC_TRIALS
     best, best_score = None, 0.0
     for a, b in zip(a_idx[order], b_idx[order]):
         if shared[a, b] < MIN_INLIERS:
@@ -204,6 +206,7 @@ def _resect(pycolmap, tracks, state, k, seed) -> bool:
     estimation = pycolmap.AbsolutePoseEstimationOptions()
     estimation.ransac.max_error = MAX_ERROR
     estimation.ransac.random_seed = seed
+    estimation.ransac.max_num_trials = RANSAC_TRIALS
     found = pycolmap.estimate_and_refine_absolute_pose(tracks.z[rows], state.X[tracks.point[rows]], camera,
                                                        estimation)
     if found is None or found["num_inliers"] < MIN_RESECTION:

@@ -74,8 +74,9 @@ def add_parser(sub) -> None:
     rec.add_argument("--matches", default="raw", choices=MATCHES.names,
                      help="photos and COLMAP databases: track the matcher's raw matches (default; "
                      "wrong ones are found by the solve) or only the geometrically verified ones")
-    rec.add_argument("--loss", default="l2", choices=REPROJECTION_LOSSES.names,
-                     help="l2 (default), or a robust loss: huber, soft_l1 (cauchy: reprojection only)")
+    rec.add_argument("--loss", choices=REPROJECTION_LOSSES.names,
+                     help="l2, or a robust loss: huber, soft_l1 (cauchy: reprojection only); default "
+                     "soft_l1 for bundle adjustment of photos' and COLMAP databases' tracks, l2 otherwise")
     rec.add_argument("--report", metavar="FILE.json", help="write per-view residuals (pixels "
                      "for reprojection), cameras, dropped and unplaced ids and runtime as JSON")
     rec.add_argument("--seed", type=int, default=0, help="random state (default 0)")
