@@ -24,10 +24,15 @@ cannot blow up:
    views, robust at each step, which long sequences with missing data need
    (the global factorisation folds dino's turntable when 80 observations
    are removed);
-3. bundle adjustment of the ``scaled`` model from each start, scouted, the
-   best one solved to the end; ``orthographic`` from it with one scale for
-   all views, ``perspective`` from it at several focal lengths and in both
-   depth orders, the one with the lowest error kept.
+3. a pinhole start grown view by view (:mod:`.pinhole_start`: an essential
+   matrix's initial pair, then resection by P3P, as COLMAP grows its models),
+   which close photos taken far apart need (the affine start folds there);
+4. bundle adjustment of the ``scaled`` model from each affine start,
+   scouted, the best one solved to the end; ``orthographic`` from it with one
+   scale for all views; ``perspective`` from the grown pinhole when that
+   registers every view, else from the scaled fit at several focal lengths
+   and in both depth orders (the grown one kept instead, its unregistered
+   views left out, where its median residual is under half).
 
 Wrong matches are first suspected before any fit, two views at a time
 (:mod:`.epipolar`) and by the incremental start, and left out of every fit;
