@@ -57,7 +57,7 @@ from mpe3d.solvers.degenerate import warn
 from mpe3d.solvers.linalg import elongation, sum_by
 from mpe3d.solvers.sfm import incremental
 from mpe3d.solvers.sfm.adjust import adjust, one_blas_thread
-from mpe3d.solvers.sfm.camera_fits import FITTERS, grown_pinhole, scaled_fit
+from mpe3d.solvers.sfm.camera_fits import FITTERS, grown_pinhole, scaled_fit, scaled_from_pinhole
 from mpe3d.solvers.sfm.cameras import (
     MATRIX,
     PINHOLES,
@@ -155,12 +155,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     lm_options = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
     flagged = _epipolar_flags(tracks, outlier_threshold)
     used = informative(tracks, ~flagged)
-    grown = incremental.incremental_start(tracks.subset(used), finite_threshold(outlier_threshold))
-    if grown is not None and np.isfinite(outlier_threshold):  # its left-outs are suspects too
-        flagged[np.flatnonzero(used)[grown.left_out]] = True
-        used = informative(tracks, ~flagged)
     # the pinhole grown view by view, where a pinhole may be kept
-    early = grown_pinhole(tracks.subset(used), principal_point, lm_options) \
+    early = _grown(tracks, used, principal_point, lm_options) \
         if camera in ("auto", *PINHOLES) and shared_focal and np.isfinite(outlier_threshold) else None
     every_view = early is not None and early[1].all()
     # a pinhole asked for, or grown over every view: the scaled fit is its start
@@ -171,8 +167,19 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     short = camera in PINHOLES or (camera == "auto" and every_view)
     start_options = {**lm_options, "max_iter": min(lm_options["max_iter"], START_ITERATIONS)} \
         if short else lm_options
-    fit, affine_rms = scaled_fit(tracks.subset(used), start_options,
-                              None if grown is None else grown[:2])  # (X, cameras)
+    fit = scaled_from_pinhole(*early[0][:2], tracks.subset(used), start_options) \
+        if every_view and camera == "auto" else None
+    # the scaled rival from the pinhole spares the affine starts where the pinhole
+    # clearly wins; where it does not, the scaled model's own starts judge it
+    if fit is not None and _median_of(early[0], tracks, early[2] & used) < AUTO_RATIO * _median_of(fit, tracks, used):
+        affine_rms = np.nan
+    else:
+        grown = incremental.incremental_start(tracks.subset(used), finite_threshold(outlier_threshold))
+        if grown is not None and np.isfinite(outlier_threshold):  # its left-outs are suspects too
+            flagged[np.flatnonzero(used)[grown.left_out]] = True
+            used = informative(tracks, ~flagged)
+        fit, affine_rms = scaled_fit(tracks.subset(used), start_options,
+                                  None if grown is None else grown[:2])  # (X, cameras)
     # The models are compared on the same observations, before any is dropped:
     # a weak-perspective misfit of perspective data is no wrong match.
     fits = {"scaled": fit}
@@ -239,6 +246,17 @@ def _widened(result: BundleResult, tracks, inside) -> BundleResult:
     return result
 
 
+def _grown(tracks, used, principal_point, lm_options):
+    """:func:`.camera_fits.grown_pinhole` on the ``used`` observations: its fit,
+    its (K,) registered views and the (T,) observations of its model, or None."""
+    grown = grown_pinhole(tracks.subset(used), principal_point, lm_options)
+    if grown is None:
+        return None
+    in_model = np.zeros(len(tracks.view), dtype=bool)  # grown[2]: over the used rows
+    in_model[np.flatnonzero(used)[grown[2]]] = True
+    return grown[0], grown[1], in_model
+
+
 def _perspective_fit(scaled, grown, tracks, used, principal_point, lm_options):
     """The pinhole grown view by view (:func:`.camera_fits.grown_pinhole`) when
     it registers every view; else the pinhole from the ``scaled`` fit, unless
@@ -247,18 +265,15 @@ def _perspective_fit(scaled, grown, tracks, used, principal_point, lm_options):
     Returns the fit, the (K,) views it registers and the (T,) observations it
     rests on."""
     everything = np.ones(tracks.n_views, dtype=bool), np.ones(len(tracks.view), dtype=bool)
-    in_model = np.zeros(len(tracks.view), dtype=bool)
-    if grown is not None:
-        in_model[np.flatnonzero(used)[grown[2]]] = True
     if grown is not None and grown[1].all():
-        return grown[0], grown[1], in_model
+        return grown
     fit = FITTERS["perspective"](*scaled[:2], tracks.subset(used), principal_point, True, lm_options)
     fit, _ = without_runaways(fit, tracks, used, lm_options)
     if grown is None:
         return fit, *everything
-    other, registered, _ = grown
+    other, registered, in_model = grown
     if _median_of(other, tracks, in_model) < GROWN_RATIO * _median_of(fit, tracks, used):
-        return other, registered, in_model
+        return grown
     return fit, *everything
 
 

@@ -19,9 +19,7 @@ from mpe3d.solvers.sfm.cameras import (
 )
 from mpe3d.solvers.sfm.support import ELONGATION, ROUND_TOL, mean_by_view, placed_points, weak_points
 from mpe3d.solvers.sfm.tracks import Tracks, image_size, rms
-from mpe3d.solvers.sfm.triangulation import (
-    adjusted_points,
-)
+from mpe3d.solvers.sfm.triangulation import adjusted_points, dlt_rows, least_squares_points
 from mpe3d.solvers.stress import project_rows
 
 # Focal lengths tried from the weak-perspective start, in units of the image size.
@@ -180,6 +178,19 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, lm_o
     return _best_of(starts, tracks, lm_options)[0]
 
 
+def scaled_from_pinhole(X, pinhole: Cameras, tracks, lm_options):
+    """The scaled (weak-perspective) fit started from a pinhole solution: each
+    view's pinhole linearised at the cloud's centroid, u = s R[:2] x + t with
+    s = f / depth and t = c + s T[:2]. Where the grown pinhole registers every
+    view, this is the scaled rival without the affine starts."""
+    R, T = pinhole.current_rotations(), pinhole.params[:, 3:6]
+    centroid = X.mean(axis=0)
+    depth = np.einsum("kij,j->ki", R, centroid)[:, 2] + T[:, 2]
+    s = pinhole.focal() / depth
+    start = affine_cameras("scaled", R[:, :2], s, pinhole.principal_point + s[:, None] * T[:, :2])
+    return adjust(X, start, tracks, **lm_options)
+
+
 def grown_pinhole(tracks, principal_point, lm_options, focal=None):
     """The perspective fit from the start grown view by view
     (:mod:`.pinhole_start`), adjusted to the end over the observations it
@@ -193,7 +204,34 @@ def grown_pinhole(tracks, principal_point, lm_options, focal=None):
     start = pinhole_start(tracks, c, focal)
     if start is None:
         return None
-    return adjust(start.X, start.cameras, tracks.subset(start.kept), **lm_options), start.registered, start.kept
+    fit = adjust(start.X, start.cameras, tracks.subset(start.kept), **lm_options)
+    X, placed = _the_rest_placed(fit, tracks, start)
+    # what the fit rests on: the observations the start kept, and those of the
+    # points it left out only for their narrow rays; the rest are suspects
+    rows = start.registered[tracks.view] & (start.kept | (placed & ~start.placed)[tracks.point])
+    return fit._replace(X=X), start.registered, rows
+
+
+def _the_rest_placed(fit, tracks, start):
+    """The points the start left unplaced for their narrow rays alone, placed by
+    linear triangulation under the fit's cameras (the weak-geometry rule decides
+    them later), where every camera sees them in front; and (N,) which points
+    now have a place."""
+    X, N = fit.X.copy(), tracks.n_points
+    rows = start.registered[tracks.view]
+    todo = start.narrow & (np.bincount(tracks.point[rows], minlength=N) >= 2)
+    rows &= todo[tracks.point]
+    if not rows.any():
+        return X, start.placed.copy()
+    A, b = dlt_rows(fit.cameras.projection_matrices(), tracks.view[rows], tracks.z[rows])
+    X[todo] = least_squares_points(A, b, tracks.point[rows], N)[todo]
+    seen = np.all(np.isfinite(fit.cameras.project(X, tracks.view[rows], tracks.point[rows])), axis=1)
+    unseen = np.zeros(N, dtype=bool)
+    unseen[tracks.point[rows][~seen]] = True
+    # the algebraic error's place is a pinhole's start, not its optimum: each point
+    # is adjusted alone under the fit's cameras
+    X = adjusted_points(X, fit.cameras, tracks.subset(rows), todo & ~unseen)
+    return X, start.placed | (todo & ~unseen)
 
 
 def _radial(X, pinhole: Cameras, tracks, principal_point, shared_focal, lm_options):

@@ -56,6 +56,7 @@ class PinholeStart:
     placed: np.ndarray  # (N,) bool
     registered: np.ndarray  # (K,) bool
     kept: np.ndarray  # (T,) bool: observations within MAX_ERROR px of their placed point
+    narrow: np.ndarray  # (N,) bool: unplaced only because their rays meet too narrowly
 
 
 def _colmap_camera(pycolmap, focal, c, tracks):
@@ -151,7 +152,7 @@ def _pair_state(tracks, a, b, pose, inliers, f, c) -> PinholeStart:
     registered = np.zeros(K, dtype=bool)
     registered[[a, b]] = True
     state = PinholeStart(np.zeros((N, 3)), _cameras(R, t, f, c), np.zeros(N, dtype=bool), registered,
-                         np.zeros(len(tracks.view), dtype=bool))
+                         np.zeros(len(tracks.view), dtype=bool), np.zeros(N, dtype=bool))
     candidates = np.zeros(N, dtype=bool)
     candidates[inliers] = True
     _triangulate(tracks, state, candidates)
@@ -184,12 +185,23 @@ def _triangulate(tracks, state, candidates=None) -> None:
     good = np.ones(N, dtype=bool)
     bad_points = tracks.point[rows][~(error <= MAX_ERROR)]  # nan: behind a camera
     good[bad_points] = False
-    rays, lines = ray_directions(P, X, tracks.view[rows], tracks.point[rows])
-    wide = widest_angles(rays, tracks.point[rows], N, lines) >= MIN_RAY_ANGLE
+    wide = widest_angles(_bearings(state.cameras, tracks, rows), tracks.point[rows], N) >= MIN_RAY_ANGLE
     new = wanted & good & wide
     state.X[new] = X[new]
     state.placed |= new
+    # a narrow point's linear triangulation is no test of its matches: set aside, not suspect
+    state.narrow = (state.narrow | (wanted & ~wide)) & ~state.placed
     state.kept |= rows & new[tracks.point]
+
+
+def _bearings(cameras: Cameras, tracks, rows) -> np.ndarray:
+    """Unit directions, in the world, of the rays through the observations
+    ``rows``: the angle between two of them is the point's triangulation angle
+    wherever its linear triangulation lands (far out, that place is noise)."""
+    n = (tracks.z[rows] - cameras.principal_point) / cameras.focal()[tracks.view[rows], None]
+    rays = np.einsum("tji,tj->ti", cameras.current_rotations()[tracks.view[rows]],
+                     np.column_stack([n, np.ones(len(n))]))
+    return rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
 
 def _next_view(tracks, state, failed) -> int | None:
