@@ -57,7 +57,7 @@ from mpe3d.solvers.degenerate import warn
 from mpe3d.solvers.linalg import elongation, sum_by
 from mpe3d.solvers.sfm import incremental
 from mpe3d.solvers.sfm.adjust import adjust, one_blas_thread
-from mpe3d.solvers.sfm.camera_fits import FITTERS, grown_pinhole, scaled_fit, scaled_from_pinhole
+from mpe3d.solvers.sfm.camera_fits import FITTERS, grown_pinhole, scaled_fit
 from mpe3d.solvers.sfm.cameras import (
     MATRIX,
     PINHOLES,
@@ -167,19 +167,12 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     short = camera in PINHOLES or (camera == "auto" and every_view)
     start_options = {**lm_options, "max_iter": min(lm_options["max_iter"], START_ITERATIONS)} \
         if short else lm_options
-    fit = scaled_from_pinhole(*early[0][:2], tracks.subset(used), start_options) \
-        if every_view and camera == "auto" else None
-    # the scaled rival from the pinhole spares the affine starts where the pinhole
-    # clearly wins; where it does not, the scaled model's own starts judge it
-    if fit is not None and _median_of(early[0], tracks, early[2] & used) < AUTO_RATIO * _median_of(fit, tracks, used):
-        affine_rms = np.nan
-    else:
-        grown = incremental.incremental_start(tracks.subset(used), finite_threshold(outlier_threshold))
-        if grown is not None and np.isfinite(outlier_threshold):  # its left-outs are suspects too
-            flagged[np.flatnonzero(used)[grown.left_out]] = True
-            used = informative(tracks, ~flagged)
-        fit, affine_rms = scaled_fit(tracks.subset(used), start_options,
-                                  None if grown is None else grown[:2])  # (X, cameras)
+    grown = incremental.incremental_start(tracks.subset(used), finite_threshold(outlier_threshold))
+    if grown is not None and np.isfinite(outlier_threshold):  # its left-outs are suspects too
+        flagged[np.flatnonzero(used)[grown.left_out]] = True
+        used = informative(tracks, ~flagged)
+    fit, affine_rms = scaled_fit(tracks.subset(used), start_options,
+                              None if grown is None else grown[:2])  # (X, cameras)
     # The models are compared on the same observations, before any is dropped:
     # a weak-perspective misfit of perspective data is no wrong match.
     fits = {"scaled": fit}
@@ -258,21 +251,22 @@ def _grown(tracks, used, principal_point, lm_options):
 
 
 def _perspective_fit(scaled, grown, tracks, used, principal_point, lm_options):
-    """The pinhole grown view by view (:func:`.camera_fits.grown_pinhole`) when
-    it registers every view; else the pinhole from the ``scaled`` fit, unless
-    the grown one, leaving views out, has a median residual under GROWN_RATIO
-    times its own (close photos from far apart fold the affine start).
-    Returns the fit, the (K,) views it registers and the (T,) observations it
-    rests on."""
+    """The better of two pinholes: the one from the ``scaled`` fit (several focal
+    lengths, both depth orders) and the one grown view by view
+    (:func:`.camera_fits.grown_pinhole`; close photos from far apart fold the
+    affine start, and a guessed principal point can mislead the grown one). The
+    grown one is kept when it registers every view with a median residual no
+    larger on the observations both rest on, or, leaving views out, with one
+    under GROWN_RATIO times the other's. Returns the fit, the (K,) views it
+    registers and the (T,) observations it rests on."""
     everything = np.ones(tracks.n_views, dtype=bool), np.ones(len(tracks.view), dtype=bool)
-    if grown is not None and grown[1].all():
-        return grown
     fit = FITTERS["perspective"](*scaled[:2], tracks.subset(used), principal_point, True, lm_options)
     fit, _ = without_runaways(fit, tracks, used, lm_options)
     if grown is None:
         return fit, *everything
     other, registered, in_model = grown
-    if _median_of(other, tracks, in_model) < GROWN_RATIO * _median_of(fit, tracks, used):
+    theirs, ours = _median_of(other, tracks, in_model & used), _median_of(fit, tracks, in_model & used)
+    if theirs <= ours if registered.all() else theirs < GROWN_RATIO * ours:
         return grown
     return fit, *everything
 

@@ -178,19 +178,6 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, lm_o
     return _best_of(starts, tracks, lm_options)[0]
 
 
-def scaled_from_pinhole(X, pinhole: Cameras, tracks, lm_options):
-    """The scaled (weak-perspective) fit started from a pinhole solution: each
-    view's pinhole linearised at the cloud's centroid, u = s R[:2] x + t with
-    s = f / depth and t = c + s T[:2]. Where the grown pinhole registers every
-    view, this is the scaled rival without the affine starts."""
-    R, T = pinhole.current_rotations(), pinhole.params[:, 3:6]
-    centroid = X.mean(axis=0)
-    depth = np.einsum("kij,j->ki", R, centroid)[:, 2] + T[:, 2]
-    s = pinhole.focal() / depth
-    start = affine_cameras("scaled", R[:, :2], s, pinhole.principal_point + s[:, None] * T[:, :2])
-    return adjust(X, start, tracks, **lm_options)
-
-
 def grown_pinhole(tracks, principal_point, lm_options, focal=None):
     """The perspective fit from the start grown view by view
     (:mod:`.pinhole_start`), adjusted to the end over the observations it
