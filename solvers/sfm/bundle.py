@@ -29,10 +29,10 @@ cannot blow up:
    which close photos taken far apart need (the affine start folds there);
 4. bundle adjustment of the ``scaled`` model from each affine start,
    scouted, the best one solved to the end; ``orthographic`` from it with one
-   scale for all views; ``perspective`` from the grown pinhole when that
-   registers every view, else from the scaled fit at several focal lengths
-   and in both depth orders (the grown one kept instead, its unregistered
-   views left out, where its median residual is under half).
+   scale for all views; ``perspective`` from the scaled fit at several focal
+   lengths and in both depth orders, against the grown pinhole: the grown
+   one kept where it registers every view with a median residual no larger,
+   or, leaving views out (then unregistered), with one under half.
 
 Wrong matches are first suspected before any fit, two views at a time
 (:mod:`.epipolar`) and by the incremental start, and left out of every fit;
