@@ -387,7 +387,8 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     camera : {"auto", "orthographic", "scaled", "perspective", "radial"}, default "auto"
         The camera model of the reprojection objective; "auto" fits the scaled
         (weak-perspective) and the pinhole camera and keeps the pinhole when it
-        explains the keypoints clearly better. "radial" adds radial distortion
+        explains the keypoints clearly better, and then the radial one when
+        that is clearly better still. "radial" adds radial distortion
         k1, k2 (one lens for all views), estimated from the pinhole's fit.
     missing : None or (x, y), default None
         Observations at exactly (x, y) are markers for "not seen" and dropped.

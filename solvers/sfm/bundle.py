@@ -131,7 +131,8 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     camera : {"auto", "orthographic", "scaled", "perspective", "radial"}, default "auto"
         "auto" fits ``scaled`` and ``perspective`` and keeps the pinhole camera
         when it explains the keypoints clearly better (median residual below
-        ``AUTO_RATIO`` times the weak perspective's). "radial" is the pinhole
+        ``AUTO_RATIO`` times the weak perspective's), and then ``radial`` when
+        it is as clearly better than the pinhole (a real lens). "radial" is the pinhole
         with radial distortion k1, k2, fitted from the pinhole's solution.
     principal_point : (2,) or None, default None
         Pinholes only; None takes the centre of the keypoints' bounding box.
