@@ -18,6 +18,7 @@ import yaml
 from mpe3d.errors import MpeError, coerce, suggest
 from mpe3d.options import (
     CAMERAS,
+    COLMAP_CAMERAS,
     INITS,
     OBJECTIVES,
     OUTLIER_THRESHOLD,
@@ -353,7 +354,7 @@ def _check_tracks(v: dict[str, Any], bad) -> None:
                 if v["tracks.root"] is None and not path.is_absolute() else ""
             raise MpeError(f"{key}: {path}: no such file or folder{hint}", key=key)
     if v["tracks.solver"] == "colmap" and v["tracks.objective"] == "reprojection":
-        for key, allowed in (("tracks.camera", ("auto", "radial", "perspective")), ("tracks.loss", ("l2",)),
+        for key, allowed in (("tracks.camera", COLMAP_CAMERAS.names), ("tracks.loss", ("l2",)),
                              ("tracks.start", ("own",)), ("tracks.outlier_threshold", (OUTLIER_THRESHOLD,))):
             if v[key] not in allowed:
                 raise bad(key, f"tracks.solver=colmap takes {' or '.join(allowed)} (COLMAP's mapper)")

@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import tempfile
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -89,8 +90,6 @@ def extract_and_match(database: Path, image_dir: Path, names: list[str], *, came
                       max_features: int = 8192) -> dict[str, float]:
     """SIFT on ``names`` (one shared camera) and their matches into ``database``;
     returns the seconds of each step."""
-    import time
-
     pycolmap = require_pycolmap()
     seconds = {}
     start = time.perf_counter()

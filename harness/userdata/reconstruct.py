@@ -29,6 +29,7 @@ from mpe3d.harness.userdata.formats import read_projections, read_views
 from mpe3d.harness.userdata.observations import drop_missing, observations_from
 from mpe3d.options import (
     CAMERAS,
+    COLMAP_CAMERAS,
     OBJECTIVES,
     OUTLIER_THRESHOLDS,
     REPROJECTION_LOSSES,
@@ -58,7 +59,7 @@ class ViewCamera:
     translation_px: np.ndarray | None = None  # (2,) affine
     k1: float | None = None  # radial distortion (the radial camera)
     k2: float | None = None
-    registered: bool = True  # False: COLMAP's mapper left the view out (P is NaN)
+    registered: bool = True  # False: the solve left the view out, no pose agreeing with it (P is NaN)
 
     @classmethod
     def from_numbers(cls, view: str, numbers: dict) -> "ViewCamera":
@@ -224,8 +225,7 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
 
 def _first(views, key):
     """A photo set's shared value (image size, EXIF focal length), or None."""
-    values = [view.get(key) for view in views]
-    return values[0] if values and values[0] is not None else None
+    return views[0].get(key) if views else None
 
 
 def _loss_for(views, objective: str, solver: str) -> str:
@@ -254,9 +254,9 @@ def _solver_for(objective: str, solver: str | None) -> str:
 def _check_colmap(source, camera, loss, projections, start, outlier_threshold):
     """What COLMAP's mapper cannot be asked: it poses its own cameras from its
     own start, with its own camera models, loss and filter."""
-    if camera not in colmap_mapper.COLMAP_CAMERAS:
+    if camera not in COLMAP_CAMERAS:
         raise MpeError(f"camera='{camera}': COLMAP has no affine camera; solver='colmap' takes "
-                       f"camera {', '.join(colmap_mapper.COLMAP_CAMERAS)}")
+                       f"camera {', '.join(COLMAP_CAMERAS)}")
     for flag, value, default in (("loss", loss, "l2"), ("start", start, None),
                                  ("outlier_threshold", outlier_threshold, bundle.OUTLIER_THRESHOLD)):
         if value not in (default, "own"):

@@ -27,12 +27,14 @@ from pathlib import Path
 import numpy as np
 
 from mpe3d.errors import MpeError
+from mpe3d.options import COLMAP_CAMERAS
 from mpe3d.solvers.sfm.bundle import BundleResult, place_unplaced
 from mpe3d.solvers.sfm.cameras import radial_cameras
 from mpe3d.solvers.sfm.colmap_link import require_pycolmap
 from mpe3d.solvers.sfm.tracks import Tracks
 
-COLMAP_CAMERAS = {"auto": "SIMPLE_RADIAL", "radial": "SIMPLE_RADIAL", "perspective": "SIMPLE_PINHOLE"}
+# COLMAP's camera model for each of ours it takes (mpe3d.options.COLMAP_CAMERAS)
+COLMAP_MODELS = {"auto": "SIMPLE_RADIAL", "radial": "SIMPLE_RADIAL", "perspective": "SIMPLE_PINHOLE"}
 MIN_REGISTERED = 2  # views a model needs to be one
 
 
@@ -116,9 +118,7 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
 
     ``info["seconds"]`` holds the time of verification and of mapping.
     """
-    if camera not in COLMAP_CAMERAS:
-        raise MpeError(f"camera='{camera}': COLMAP has no affine camera; its mapper takes "
-                       f"{', '.join(COLMAP_CAMERAS)}")
+    COLMAP_CAMERAS.check("camera", camera)
     pycolmap = require_pycolmap()
     lo, hi = tracks.z.min(axis=0), tracks.z.max(axis=0)
     c = np.asarray((lo + hi) / 2 if principal_point is None else principal_point, dtype=float)
@@ -126,7 +126,7 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
                      else (int(image_size[0]), int(image_size[1])))
     prior = focal is not None
     f = float(focal) if prior else 1.2 * max(width, height)
-    model = COLMAP_CAMERAS[camera]
+    model = COLMAP_MODELS[camera]
     params = [f, c[0], c[1]] + ([0.0] if model == "SIMPLE_RADIAL" else [])
     cam = pycolmap.Camera(model=model, width=int(width), height=int(height), params=params)
     cam.has_prior_focal_length = prior

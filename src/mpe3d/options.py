@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 from mpe3d.errors import MpeError, suggest
 
-__all__ = ["CAMERAS", "CAMERA_MODELS", "Choice", "INITS", "Interval", "OBJECTIVES", "OUTLIER_THRESHOLD",
-           "OUTLIER_THRESHOLDS", "MATCHES", "PROJECTIONS", "REPROJECTION_LOSSES", "REPROJECTION_SOLVERS", "STARTS",
-           "STRESS_LOSSES"]
+__all__ = ["CAMERAS", "CAMERA_MODELS", "COLMAP_CAMERAS", "Choice", "INITS", "Interval", "MATCHES", "OBJECTIVES",
+           "OUTLIER_THRESHOLD", "OUTLIER_THRESHOLDS", "PROJECTIONS", "REPROJECTION_LOSSES", "REPROJECTION_SOLVERS",
+           "STARTS", "STRESS_LOSSES"]
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,8 @@ REPROJECTION_LOSSES = Choice(("l2", "huber", "soft_l1", "cauchy"))
 # Who minimises the reprojection error: mpe3d's bundle adjustment, or COLMAP's
 # geometric verification and incremental mapper on the same tracks.
 REPROJECTION_SOLVERS = Choice(("bundle", "colmap"))
+# The camera choices COLMAP's mapper takes: it has no affine camera.
+COLMAP_CAMERAS = Choice(("auto", "radial", "perspective"))
 # Which matches of a COLMAP database (or of photos) make the tracks: the raw
 # ones of the matcher, or those its two-view geometric verification kept.
 MATCHES = Choice(("raw", "verified"))
