@@ -100,15 +100,18 @@ def cmd_reconstruct(args) -> int:
     report = check_output(args.report, "--report", (".json",)) if args.report else None
     if report is not None and report.resolve() == out.resolve():
         raise MpeError(f"--report {report}: the same file as --out")
-    problem = prepare(args.input, projections=args.projections, solver=args.solver,
-                      loss=args.loss, random_state=args.seed, objective=args.objective,
-                      camera=args.camera, missing=args.missing,
-                      outlier_threshold=args.outlier_threshold,
-                      principal_point=args.principal_point, start=args.start, matches=args.matches)
+    with _working(f"reading {args.input}" + (" (SIFT features and matches by pycolmap)"
+                                               if Path(args.input).is_dir() else "")):
+        problem = prepare(args.input, projections=args.projections, solver=args.solver,
+                          loss=args.loss, random_state=args.seed, objective=args.objective,
+                          camera=args.camera, missing=args.missing,
+                          outlier_threshold=args.outlier_threshold,
+                          principal_point=args.principal_point, start=args.start, matches=args.matches)
     check_ids_fit(out, problem.ids)
     if solution:
         bundler.check_solution_out(out, problem)
-    result = solve_problem(problem)
+    with _working(f"solving {problem.observations.n_views} views by {problem.solver}"):
+        result = solve_problem(problem)
     extra = {"input": str(args.input), "output": str(model or out)}
     if model:
         from mpe3d.harness.userdata.colmap_model import write_model_folder
@@ -121,6 +124,18 @@ def cmd_reconstruct(args) -> int:
         print(f"mpe3d: warning: {message}", file=sys.stderr)
     print(f"wrote {model or out}" + (f" and {report}" if report else ""))
     return 0
+
+
+def _working(text: str):
+    """A spinner with the elapsed time on a terminal (photos take minutes to
+    extract and match), nothing when stderr is a file or a pipe."""
+    from contextlib import nullcontext
+
+    if not sys.stderr.isatty():
+        return nullcontext()
+    from rich.console import Console
+
+    return Console(stderr=True).status(f"{text} ...")
 
 
 def _model_out(text: str) -> Path | None:
