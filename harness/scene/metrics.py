@@ -15,6 +15,9 @@ Scales, for comparing with the paper's tables (see the README):
   rigid alignment (paper appendix).
 * ``cd_x100`` and ``emd_x100``: 100 x mean (unsquared) distances, the scale
   the authors' public code reports and most likely the one of the tables.
+
+Camera poses are scored as structure from motion is (:func:`relative_pose_errors`,
+:func:`pose_auc`): COLMAP's own benchmark, the relative-pose AUC.
 """
 
 from __future__ import annotations
@@ -162,3 +165,61 @@ def evaluate(truth: np.ndarray, reconstruction: np.ndarray, align: str = "rigid"
     metrics = {**chamfer(aligned, truth), **earth_movers(aligned, truth),
                "roa": roa(reconstruction, truth)}
     return metrics, aligned
+
+
+POSE_AUC_THRESHOLDS = (0.5, 1.0, 3.0, 5.0, 10.0)  # degrees: COLMAP's benchmark's, and AUC@3 (the IMC's)
+
+
+def relative_pose_errors(estimated: dict, reference: dict) -> np.ndarray:
+    """The relative pose error of every ordered pair of the ``reference``'s
+    photos, in degrees, as COLMAP's benchmark defines it
+    (``benchmark/reconstruction/evaluation/utils.py``,
+    ``compute_grouped_rel_errors`` with one model and one reference component):
+    the larger of the angle of R_est^T R_ref, the two relative rotations, and
+    the angle between the two relative translations' directions; 180 for a
+    pair not registered together. Both are ``{name: (R, t)}`` of
+    ``x_cam = R x + t``; a photo missing from ``estimated`` (or whose R is
+    not finite) was not registered, and estimated photos the reference does
+    not have are left out."""
+    names = sorted(reference)
+    errors = []
+    for src in names:
+        for tgt in names:
+            if src == tgt:
+                continue
+            if not all(n in estimated and np.all(np.isfinite(estimated[n][0])) for n in (src, tgt)):
+                errors.append(180.0)
+                continue
+            (R_est, t_est), (R_ref, t_ref) = (_relative(poses[src], poses[tgt])
+                                              for poses in (estimated, reference))
+            cos_r = (np.trace(R_est.T @ R_ref) - 1.0) / 2.0
+            d_r = np.degrees(np.arccos(np.clip(cos_r, -1.0, 1.0)))
+            cos_t = np.dot(t_est, t_ref) / max(np.linalg.norm(t_est) * np.linalg.norm(t_ref), 1e-300)
+            d_t = np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0)))
+            errors.append(float(max(d_r, d_t)))
+    return np.array(errors)
+
+
+def _relative(src, tgt):
+    """tgt_from_src of two cam_from_world poses (R, t)."""
+    (R_s, t_s), (R_t, t_t) = src, tgt
+    R = np.asarray(R_t) @ np.asarray(R_s).T
+    return R, np.asarray(t_t) - R @ np.asarray(t_s)
+
+
+def pose_auc(errors: np.ndarray, thresholds=POSE_AUC_THRESHOLDS) -> np.ndarray:
+    """The area under the recall curve of ``errors`` up to each threshold, in
+    per cent of the threshold: COLMAP's ``compute_auc`` (trapezoid rule over
+    the sorted errors, from recall 0 at error 0)."""
+    errors = np.sort(np.asarray(errors, dtype=float))
+    if not len(errors):
+        raise ValueError("no pose errors to score")
+    recalls = np.r_[0.0, (np.arange(len(errors)) + 1) / len(errors)]
+    errors = np.r_[0.0, errors]
+    aucs = []
+    for t in thresholds:
+        last = np.searchsorted(errors, t, side="right")
+        r = np.r_[recalls[:last], recalls[last - 1]]
+        e = np.r_[errors[:last], t]
+        aucs.append(100.0 * np.trapezoid(r, x=e) / t)
+    return np.array(aucs)
