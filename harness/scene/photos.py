@@ -7,7 +7,9 @@ camera path or texture. Ours, chosen so that SIFT finds features that repeat
 from view to view, and documented here because the paper does not say:
 
 * **Cameras**: pinholes in COLMAP's convention (x_cam = R x + t, +z forward,
-  image y down, pixel centres at half-integers) on a closed spiral round the
+  image y down, pixel centres at half-integers), with an optional lens: radial
+  distortion k1, k2 of the normalised image point as COLMAP's RADIAL camera
+  applies it (x_d = x (1 + k1 r^2 + k2 r^4)), on a closed spiral round the
   object (centred, unit bounding-box diagonal, y up): ``turns`` turns of
   azimuth while the elevation swings from ``elevation[0]`` to ``elevation[1]``
   and back, at ``distance`` from the centre, each looking at the centre. The
@@ -49,6 +51,7 @@ class PhotoCameras:
     focal: float  # pixels, fx = fy
     width: int
     height: int
+    distortion: tuple[float, float] = (0.0, 0.0)  # k1, k2 (COLMAP's RADIAL camera)
 
     @property
     def principal_point(self) -> np.ndarray:
@@ -73,7 +76,27 @@ class PhotoCameras:
         """Pixels (K, N, 2) of ``points`` in every view, and their depths (K, N)."""
         cam = np.einsum("kij,nj->kni", self.rotations, points) + self.translations[:, None]
         depth = cam[..., 2]
-        return self.focal * cam[..., :2] / depth[..., None] + self.principal_point, depth
+        return self.focal * self.distorted(cam[..., :2] / depth[..., None]) + self.principal_point, depth
+
+    def distorted(self, n: np.ndarray) -> np.ndarray:
+        """Normalised image points (..., 2) through the lens."""
+        k1, k2 = self.distortion
+        if k1 == 0.0 and k2 == 0.0:
+            return n
+        r2 = np.sum(n ** 2, axis=-1, keepdims=True)
+        return n * (1.0 + k1 * r2 + k2 * r2 ** 2)
+
+    def undistorted(self, d: np.ndarray, iterations: int = 20) -> np.ndarray:
+        """The normalised points whose :meth:`distorted` images are ``d`` (..., 2):
+        fixed-point iterations, which converge for the mild lenses photos have."""
+        k1, k2 = self.distortion
+        if k1 == 0.0 and k2 == 0.0:
+            return d
+        n = d.copy()
+        for _ in range(iterations):
+            r2 = np.sum(n ** 2, axis=-1, keepdims=True)
+            n = d / (1.0 + k1 * r2 + k2 * r2 ** 2)
+        return n
 
     def __len__(self) -> int:
         return len(self.rotations)
@@ -166,9 +189,9 @@ def render(mesh: trimesh.Trimesh, cameras: PhotoCameras, *, seed: int = 0,
     u = (np.arange(W)[:, None] + offsets[None]).ravel()
     v = (np.arange(H)[:, None] + offsets[None]).ravel()
     uu, vv = np.meshgrid(u, v)  # (H s, W s)
-    rays_cam = np.stack([(uu - cameras.principal_point[0]) / cameras.focal,
-                         (vv - cameras.principal_point[1]) / cameras.focal,
-                         np.ones_like(uu)], axis=-1).reshape(-1, 3)
+    seen = cameras.undistorted(np.stack([(uu - cameras.principal_point[0]) / cameras.focal,
+                                         (vv - cameras.principal_point[1]) / cameras.focal], axis=-1))
+    rays_cam = np.concatenate([seen, np.ones_like(uu)[..., None]], axis=-1).reshape(-1, 3)
     rays_cam /= np.linalg.norm(rays_cam, axis=1, keepdims=True)
     normals = mesh.face_normals
     out = np.empty((len(cameras), H, W), dtype=np.uint8)
@@ -197,8 +220,7 @@ def _inside_projection(vertices, R, centre, cameras: PhotoCameras, uu, vv) -> np
     x_cam = (vertices - centre) @ R.T
     if np.any(x_cam[:, 2] <= 0):
         return np.ones(uu.size, dtype=bool)
-    u = cameras.focal * x_cam[:, 0] / x_cam[:, 2] + cameras.principal_point[0]
-    v = cameras.focal * x_cam[:, 1] / x_cam[:, 2] + cameras.principal_point[1]
+    u, v = (cameras.focal * cameras.distorted(x_cam[:, :2] / x_cam[:, 2:]) + cameras.principal_point).T
     return ((uu >= u.min() - 1) & (uu <= u.max() + 1) & (vv >= v.min() - 1)
             & (vv <= v.max() + 1)).ravel()
 
