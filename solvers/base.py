@@ -21,7 +21,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
 import numpy as np
-from scipy.spatial.distance import cdist
 
 from mpe3d import plugins
 from mpe3d.errors import MpeError, coerce, suggest
@@ -50,6 +49,8 @@ class View:
         """D^k, given or computed from the coordinates."""
         if self.distances is not None:
             return self.distances
+        from scipy.spatial.distance import cdist  # here: 0.3 s to import, keypoints never need it
+
         return cdist(self.coordinates, self.coordinates)
 
     def image(self, random_state=None) -> np.ndarray:

@@ -24,7 +24,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from mpe3d.solvers import point_kernels
 from mpe3d.solvers.base import Interval, Observations, Reconstruction, register_solver
@@ -329,6 +328,8 @@ def metric_upgrade_pd(L: np.ndarray) -> np.ndarray:
     linear = _linear_upgrade(L)
     if linear is not None:
         starts.insert(0, linear[rows, cols])
+    from scipy.optimize import least_squares  # here: scipy.optimize costs 0.1 s to import
+
     method = "lm" if 2 * len(L) + 1 >= 6 else "trf"  # lm needs as many residuals as unknowns
     best = min((least_squares(residual, a0, jac=jacobian, method=method, xtol=1e-15,
                               ftol=1e-15, gtol=1e-15) for a0 in starts), key=lambda r: r.cost)

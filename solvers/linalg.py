@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy.sparse.linalg import LinearOperator, eigsh
 
 # A PSD matrix with det > this x trace^d has condition number below 1 / this:
 # inverted directly; the rest (rank-deficient, or nearly) by SVD.
@@ -76,6 +75,8 @@ def classical_mds(D: np.ndarray, dim: int, random_state=None) -> np.ndarray:
             v = v.reshape(n, -1)
             w = D2 @ (v - v.mean(axis=0))
             return -0.5 * (w - w.mean(axis=0))
+
+        from scipy.sparse.linalg import LinearOperator, eigsh  # here: only MDS needs them
 
         B = LinearOperator((n, n), matvec=apply, matmat=apply, dtype=float)
         rng = np.random.default_rng(random_state)

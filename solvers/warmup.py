@@ -55,9 +55,11 @@ def warmed(loss: str = "l2") -> bool:
     return all(w.name in _DONE for w in _REGISTRY.values() if w.loss in (None, loss))
 
 
-def warm(loss: str = "l2", *, part: int = 0, parts: int = 1) -> None:
+def warm(loss: str = "l2", *, part: int = 0, parts: int = 1, only: tuple[str, ...] | None = None) -> None:
     """Compile (or load from the on-disk cache) every registered kernel that a
-    solve with the stress loss ``loss`` can call, once per process.
+    solve with the stress loss ``loss`` can call, once per process; with
+    ``only``, those whose names (``module.function``) start with one of its
+    prefixes (a bundle adjustment calls none of the stress's kernels).
 
     A robust loss's dense kernel (about 6 s of a first compile each) is
     compiled only when a solve asks for that loss: most installs never do.
@@ -74,7 +76,7 @@ def warm(loss: str = "l2", *, part: int = 0, parts: int = 1) -> None:
             step.call()
         return
     for step in list(_REGISTRY.values()):
-        if step.name not in _DONE and step.loss in (None, loss):
+        if step.name not in _DONE and step.loss in (None, loss) and (only is None or step.name.startswith(only)):
             step.call()
             _DONE.add(step.name)
 

@@ -33,7 +33,7 @@ from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.scene.visibility import SELF_HIT_TOLERANCE
 from mpe3d.harness.userdata import photos as photos_in
 from mpe3d.options import OUTLIER_THRESHOLD
-from mpe3d.solvers.sfm.bundle import AUTO_RATIO
+from mpe3d.solvers.sfm.stages import AUTO_RATIO, shows_perspective
 from mpe3d.solvers.sfm.support import median_radii
 
 TRACK_METHODS = ("bundle", "sgd", "refine")  # what COLMAP's tracks are fed to, in this order
@@ -104,10 +104,14 @@ def model_misfit(bundle_report: dict) -> bool:
     """Whether bundle adjustment's pinhole explains the keypoints clearly better
     than the scaled (weak-perspective) camera: its RMS below AUTO_RATIO of the
     scaled fit's on the same observations (camera="auto"'s test, on the RMS
-    both fits report rather than the median)."""
+    both fits report rather than the median), or, where no scaled fit was
+    needed, two views at a time already showing perspective."""
     by_camera = bundle_report.get("rms_px_by_camera", {})
     pinhole, scaled = by_camera.get("perspective"), by_camera.get("scaled")
-    return pinhole is not None and scaled is not None and pinhole < AUTO_RATIO * scaled
+    if pinhole is not None and scaled is not None:
+        return pinhole < AUTO_RATIO * scaled
+    noise, affine = (bundle_report.get(key) for key in ("keypoint_noise_px", "affine_misfit_px"))
+    return pinhole is not None and None not in (noise, affine) and shows_perspective(noise, affine)
 
 
 def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[dict, list[str]]:

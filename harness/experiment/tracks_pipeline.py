@@ -32,7 +32,8 @@ from mpe3d.harness.scene import metrics
 from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.userdata import vgg
 from mpe3d.harness.userdata.formats import content_digest, read_points, read_projections, read_views
-from mpe3d.harness.userdata.reconstruct import Result, prepare, solve_problem
+from mpe3d.harness.userdata.reconstruct import prepare, solve_problem
+from mpe3d.harness.userdata.results import Result
 from mpe3d.solvers.linalg import elongation
 
 MIN_VIEW_POINTS = 3  # what reconstruct asks of every view

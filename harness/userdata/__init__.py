@@ -3,7 +3,8 @@
 :mod:`.formats` reads and writes views, projections and clouds;
 :mod:`.observations` checks the views and makes them observations;
 :mod:`.reconstruct` is the validated front door (``mpe3d reconstruct`` and
-:func:`mpe3d.reconstruct`), returning a typed result; :mod:`.colmap_model`
+:func:`mpe3d.reconstruct`), returning a typed result (:mod:`.results`: the
+cloud, the cameras and the report); :mod:`.colmap_model`
 reads and writes COLMAP sparse models; :mod:`.photos` turns a folder of
 photos or a COLMAP database into keypoint views (SIFT, matches and their
 tracks, by pycolmap).
@@ -16,4 +17,4 @@ May import: :mod:`mpe3d.solvers` (the SfM stack included), :mod:`mpe3d.options`,
 :mod:`mpe3d.harness.tracking.identity` (a report says which code made it).
 """
 
-__all__ = ["bundler", "colmap_model", "formats", "observations", "photos", "reconstruct", "vgg"]
+__all__ = ["bundler", "colmap_model", "formats", "observations", "photos", "reconstruct", "results", "vgg"]

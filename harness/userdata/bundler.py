@@ -27,7 +27,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from mpe3d.errors import MpeError
 from mpe3d.harness.files import atomic_write
@@ -106,6 +105,8 @@ def _read_bal(path: Path) -> list[dict]:
             row = int(np.argmax(bad))
             raise MpeError(f"{path}: observation {row + 1} (line {row + 2}): {name} index "
                            f"{index[row]:g} is not one of 0..{count - 1}")
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs every command 0.3 s to import
+
     rotations = Rotation.from_rotvec(cameras[:, :3]).as_matrix()
     return _views(path, view.astype(np.int64), point.astype(np.int64), obs[:, 2:4], rotations,
                   cameras[:, 3:6], cameras[:, 6], cameras[:, 7:9], points)
@@ -185,6 +186,8 @@ def write_bal(path: str | Path, view, point, xy, rotations, translations, focal,
     centred) and cameras and points in mpe3d's conventions, written atomically."""
     path = Path(path)
     R, t = bundler_cameras(rotations, translations)
+    from scipy.spatial.transform import Rotation
+
     cameras = np.concatenate([Rotation.from_matrix(R).as_rotvec(), t, np.c_[focal],
                               np.asarray(distortion).reshape(len(R), 2)], axis=1)
     obs = np.c_[view, point, np.asarray(xy) * [1.0, -1.0]]

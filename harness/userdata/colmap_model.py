@@ -108,7 +108,7 @@ def read_model(folder: str | Path) -> list[dict]:
 
 
 def _pinhole(camera, principal_point, diameter: float):
-    """(fx, fy, c, R, T) of a :class:`~.reconstruct.ViewCamera`: the pinhole
+    """(fx, fy, c, R, T) of a :class:`~.results.ViewCamera`: the pinhole
     itself (a given 3x4 matrix read as P = K [R | T]), or an affine camera as
     a pinhole FAR diameters away that projects the same to 1 / FAR."""
     if camera.rotation is None:
@@ -145,7 +145,7 @@ def write_model(folder: str | Path, points: np.ndarray, ids: np.ndarray, views: 
     its track. Returns notes for what the model cannot say exactly.
 
     ``views`` are the keypoint views solved (names, ids, xy); ``cameras`` their
-    :class:`~.reconstruct.ViewCamera` in the same order (None: points only, no images);
+    :class:`~.results.ViewCamera` in the same order (None: points only, no images);
     ``dropped`` the (view name, id) pairs left out as wrong matches.
     """
     pycolmap = require_pycolmap()

@@ -7,6 +7,7 @@ Schur complement: a 3x3 block per point, a dense K * (5..7) camera system.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import NamedTuple
 
@@ -17,8 +18,39 @@ from threadpoolctl import threadpool_limits
 from mpe3d.solvers import threads
 from mpe3d.solvers.linalg import sum_by
 from mpe3d.solvers.sfm.cameras import Cameras
-from mpe3d.solvers.sfm.kernels import reduced_system, transposed_products, whitened_blocks
+from mpe3d.solvers.sfm.kernels import inverse_roots, reduced_system, transposed_products, whitened_blocks
 from mpe3d.solvers.sfm.tracks import EXACT_RMS, Tracks, image_size, rms
+
+ROUND_TOL = 1e-6  # a solve between two rounds (of dropping wrong matches, of a start) stops here
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class LMOptions:
+    """The Levenberg-Marquardt options every :func:`adjust` of one problem shares.
+
+    ``loss`` is rho of the squared residual length (scipy's names), with
+    ``loss_scale`` in pixels; a solve stops after ``max_iter`` iterations or
+    when one lowers the cost by less than ``tol`` of it. ``frozen`` (a mask
+    over ``Cameras.vector()``) holds camera parameters fixed: known rotations.
+    """
+
+    loss: str = "l2"
+    loss_scale: float = 1.0
+    max_iter: int = 100
+    tol: float = 1e-10
+    frozen: np.ndarray | None = None
+
+    def loose(self) -> "LMOptions":
+        """Solved to ROUND_TOL at most: a round whose result the next round moves anyway."""
+        return dataclasses.replace(self, tol=max(self.tol, ROUND_TOL))
+
+    def short(self, iterations: int) -> "LMOptions":
+        """At most ``iterations``: a start that is only judged, or raced."""
+        return dataclasses.replace(self, max_iter=min(self.max_iter, iterations))
+
+    def thawed(self) -> "LMOptions":
+        """Every camera parameter free (the frozen mask fits one camera array only)."""
+        return dataclasses.replace(self, frozen=None)
 
 
 class Fit(NamedTuple):
@@ -55,6 +87,11 @@ def _robust_weights(squared: np.ndarray, loss: str, scale: float):
     else:  # cauchy
         rho, weight = np.log1p(s), 1 / (1 + s)
     return float(scale ** 2 * rho.sum()), weight
+
+
+def robust_cost(squared: np.ndarray, lm: LMOptions) -> float:
+    """sum_t rho(||r_t||^2): the cost :func:`adjust` minimises, of squared residual lengths."""
+    return _robust_weights(squared, lm.loss, lm.loss_scale)[0]
 
 
 class _Structure:
@@ -107,9 +144,7 @@ class _Structure:
         return V
 
 
-def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
-           loss_scale: float = 1.0, max_iter: int = 100, tol: float = 1e-12,
-           frozen: np.ndarray | None = None) -> Fit:
+def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, options: LMOptions = LMOptions()) -> Fit:
     """Levenberg-Marquardt on E(X, C) with the points eliminated (Schur complement).
 
     Each iteration solves the damped normal equations of the (robustly
@@ -118,9 +153,10 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     is bundle adjustment's standard solver and why its cost is linear in the
     observations.
 
-    ``frozen`` (a mask over ``cameras.vector()``) holds camera parameters
-    fixed: known rotations.
+    ``options`` (:class:`LMOptions`): the loss, the iterations and the
+    parameters held fixed.
     """
+    loss, loss_scale, tol, frozen = options.loss, options.loss_scale, options.tol, options.frozen
     structure = _Structure(tracks, cameras)
     free = np.ones(structure.size) if frozen is None else (~np.asarray(frozen)).astype(float)
     N, view, point = tracks.n_points, tracks.view, tracks.point
@@ -139,7 +175,7 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     history, converged, nu = [rms(r)], False, 2.0
     if history[0] <= EXACT_RMS * image_size(tracks):  # exact already: nothing to descend
         return Fit(X, cameras, np.array(history), True)
-    for _ in range(max_iter):
+    for _ in range(options.max_iter):
         d_x, d_view, d_shared = cameras.jacobian_blocks(X, view, point)
         d_c = np.concatenate([d_view, d_shared], axis=2) if d_shared.shape[2] else d_view  # (T, 2, c)
         if frozen is not None:
@@ -180,12 +216,11 @@ def adjust(X: np.ndarray, cameras: Cameras, tracks: Tracks, loss: str = "l2",
     return Fit(X, cameras, np.array(history), converged)
 
 
-def _reduced_system(V, U_damped, W, structure):
+def _reduced_system(V, root, W, structure):
     """The upper triangle of S = V - sum_i W_i^T U_i^-1 W_i = V - Y^T Y, with Y
-    the stack of U_i^-1/2 W_i, by the compiled pass over each point's pairs of
-    observations (:func:`mpe3d.solvers.kernels.reduced_system`)."""
-    values, vectors = np.linalg.eigh(U_damped)
-    root = np.einsum("nij,nj,nkj->nik", vectors, 1 / np.sqrt(values), vectors)  # U_i^-1/2
+    the stack of M_i W_i (``root``: M_i^T M_i = U_i^-1), by the compiled pass
+    over each point's pairs of observations
+    (:func:`mpe3d.solvers.sfm.kernels.reduced_system`)."""
     Y = whitened_blocks(root, W, structure.point_by_point, structure.by_point)  # (T, 3, c), by point
     return reduced_system(V, Y, structure.view_by_point, structure.point_starts, structure.blocks,
                           threads.count())
@@ -200,11 +235,10 @@ def _damped_step(U, V, W, g_x, g_c, lam, structure, point):
     D_c = np.diag(V) + 1e-12 * max(np.diag(V).max(initial=0.0), 1e-300)
     U_damped = U.copy()
     U_damped[:, np.arange(3), np.arange(3)] += lam * D_x
-    try:
-        U_inv = np.linalg.inv(U_damped)
-    except np.linalg.LinAlgError:
+    root, U_inv, definite = inverse_roots(U_damped)
+    if not definite:
         return None
-    S = _reduced_system(V, U_damped, W, structure) if structure.size else V.copy()
+    S = _reduced_system(V, root, W, structure) if structure.size else V.copy()
     S[np.diag_indices_from(S)] += lam * D_c
     Ug = np.einsum("nij,nj->ni", U_inv, g_x)
     rhs = g_c - np.bincount(structure.cols.ravel(), minlength=structure.size,

@@ -7,57 +7,42 @@ they pose is bundle adjustment, not the distance stress of paper Eq. 1:
 
 over the observations t = (view k, point i, 2D point z_t), for a camera model
 u (:mod:`mpe3d.solvers.sfm.cameras`) with analytic Jacobians. It is solved by
-Levenberg-Marquardt with the points eliminated (the Schur complement: a 3x3
-block per point, a dense K * (5..7) camera system), bundle adjustment's
-standard solver. ``scipy.optimize.least_squares`` with the same sparse
-Jacobian (trust-region reflective, LSMR) reaches the same optimum but took
-43 s to converge on VGG's dino tracks, where this takes 0.3 s. The start
-cannot blow up:
+Levenberg-Marquardt with the points eliminated (:mod:`.adjust`: the Schur
+complement, a 3x3 block per point, a dense K * (5..7) camera system), bundle
+adjustment's standard solver. ``scipy.optimize.least_squares`` with the same
+sparse Jacobian reaches the same optimum but took 43 s on VGG's dino tracks,
+where this takes 0.3 s.
 
-1. an affine factorisation with missing data (:mod:`.factorize`), grown from
-   the best pair of views, from 1 and from 20 alternating sweeps, with a
-   metric upgrade that is positive definite by construction: M = A A^T with
-   A lower-triangular, fitted by least squares to the weak-perspective
-   conditions (each view's two rows orthogonal and of equal length) from
-   the linear solution and from the identity, the better one kept;
-2. an incremental reconstruction (:mod:`.incremental`), grown from three
-   views, robust at each step, which long sequences with missing data need
-   (the global factorisation folds dino's turntable when 80 observations
-   are removed);
-3. a pinhole start grown view by view (:mod:`.pinhole_start`: an essential
-   matrix's initial pair, then resection by P3P, as COLMAP grows its models),
-   which close photos taken far apart need (the affine start folds there);
-4. bundle adjustment of the ``scaled`` model from each affine start,
-   scouted, the best one solved to the end; ``orthographic`` from it with one
-   scale for all views; ``perspective`` from the scaled fit at several focal
-   lengths and in both depth orders, against the grown pinhole: the grown
-   one kept where it registers every view with a median residual no larger,
-   or, leaving views out (then unregistered), with one under half.
+:func:`bundle_adjust` is a short sequence of stages (:mod:`.stages`), each
+run when a cheap test says the data need it, each recorded with its reason
+in the result's ``stages``:
 
-Wrong matches are first suspected before any fit, two views at a time
-(:mod:`.epipolar`) and by the incremental start, and left out of every fit;
-then peeled off against a robust residual scale (the median residual length)
-and the problem solved again, until none is left (:func:`without_outliers`);
-last, the points with dropped observations are triangulated again robustly
-under the final cameras, and what the fit explains is taken back
-(:func:`_readmitted`). The points of weak geometry (:func:`weak_geometry`)
-sit out the long solves (:func:`peel_outliers`) and are adjusted alone after them.
+1. suspects: two views at a time flag likely wrong matches and tell the
+   keypoints' noise, and how far they are from any affine camera;
+2. the camera model: the affine start and scaled fit (the scaled camera's
+   fit, a pinhole's start or rival), the pinhole (a first opinion, a second
+   only when the first is doubtful), the lens (auto: by an information
+   criterion);
+3. wrong matches (:func:`.outliers.peel_outliers`): peeled off against a
+   robust residual scale and the problem solved again until none is left,
+   then what the fit explains taken back;
+4. the final adjustment: the points of weak geometry (:func:`.support.weak_points`)
+   left out of it and placed under its cameras, points seen once on their rays.
 """
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
-from typing import Any
 
 import numpy as np
 
 from mpe3d.errors import MpeError
-from mpe3d.options import CAMERAS, REPROJECTION_LOSSES
 from mpe3d.solvers.degenerate import warn
 from mpe3d.solvers.linalg import elongation, sum_by
-from mpe3d.solvers.sfm import incremental
-from mpe3d.solvers.sfm.adjust import adjust, one_blas_thread
-from mpe3d.solvers.sfm.camera_fits import FITTERS, grown_pinhole, scaled_fit
+from mpe3d.solvers.sfm import stages
+from mpe3d.solvers.sfm.adjust import LMOptions, adjust, one_blas_thread
+from mpe3d.solvers.sfm.camera_fits import FITTERS
 from mpe3d.solvers.sfm.cameras import (
     MATRIX,
     PINHOLES,
@@ -65,14 +50,13 @@ from mpe3d.solvers.sfm.cameras import (
     affine_cameras,
     known_matrices,
 )
-from mpe3d.solvers.sfm.epipolar import epipolar_outliers
 from mpe3d.solvers.sfm.outliers import (
     OUTLIER_THRESHOLD,
-    finite_threshold,
     peel_outliers,
     without_outliers,
     without_runaways,
 )
+from mpe3d.solvers.sfm.stages import BundleOptions, BundleState, Stage
 from mpe3d.solvers.sfm.support import (
     ELONGATION,
     MIN_RAY_ANGLE,
@@ -80,18 +64,18 @@ from mpe3d.solvers.sfm.support import (
     mean_by_view,
     weak_points,
 )
-from mpe3d.solvers.sfm.tracks import EXACT_RMS, Tracks, image_size, residual_lengths, rms
+from mpe3d.solvers.sfm.tracks import EXACT_RMS, Tracks, image_size, rms
 from mpe3d.solvers.sfm.triangulation import (
     dlt_rows,
     least_squares_points,
 )
 
-START_ITERATIONS = 20  # the scaled fit's when it is only a pinhole's start
+# The compiled kernels a bundle adjustment calls: the SfM stack's own and the
+# affine factorisation's (warmup.warm(only=KERNELS) loads no stress kernel).
+KERNELS = ("mpe3d.solvers.sfm.", "mpe3d.solvers.point_kernels.affine_als")
 _TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins in turn
 _PLACING_STEPS = 10  # Gauss-Newton steps that put a point seen once on its ray
-AUTO_RATIO = 0.8  # camera="auto" keeps the pinhole below this share of the weak median residual
 DISAGREE_RATIO = 0.5  # another model this much better is said
-GROWN_RATIO = 0.5  # the grown pinhole, leaving views out, is kept below this share of the other's median
 
 
 @dataclass
@@ -106,9 +90,17 @@ class BundleResult:
     converged: bool
     iterations: int  # Levenberg-Marquardt iterations of the final solve
     termination: str
-    affine_rms: float  # RMS of the affine factorisation, a floor for any camera model
+    affine_rms: float  # RMS of the affine factorisation, a floor for any affine camera (NaN: not run)
     camera: str = "scaled"  # the model fitted (auto resolved)
-    info: dict[str, Any] = field(default_factory=dict)
+    placed: np.ndarray | None = None  # (N,) bool: points whose depth the views fix
+    weak: np.ndarray | None = None  # (N,) bool: of the others, those placed but of weak geometry
+    registered: np.ndarray | None = None  # (K,) bool: views with a pose (False: left out)
+    rms_by_camera: dict[str, float] = field(default_factory=dict)  # each model fitted, on what it rests on
+    rms_history: np.ndarray = field(default_factory=lambda: np.zeros(0))  # of the final solve
+    stages: tuple[Stage, ...] = ()  # what ran, and why
+    noise: float = float("nan")  # the keypoints' noise, pixels (two views at a time; NaN: unknown)
+    affine_misfit: float = float("nan")  # their distance to affine epipolar geometry, pixels
+    seconds: dict[str, float] = field(default_factory=dict)  # a mapper's phases (COLMAP's)
 
     def rms(self, rows=None) -> float:
         """sqrt(mean ||r_t||^2) in pixels over ``rows``, by default the kept
@@ -119,9 +111,9 @@ class BundleResult:
 
 @one_blas_thread
 def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
-                  shared_focal: bool = True, loss: str = "l2", loss_scale: float = 1.0,
-                  outlier_threshold: float = OUTLIER_THRESHOLD, max_iter: int = 100,
-                  tol: float = 1e-10) -> BundleResult:
+                  shared_focal: bool = True, focal: float | None = None, loss: str = "l2",
+                  loss_scale: float = 1.0, outlier_threshold: float = OUTLIER_THRESHOLD,
+                  max_iter: int = 100, tol: float = 1e-10, random_state: int = 0) -> BundleResult:
     """Points and cameras of model ``camera`` that minimise the reprojection error.
 
     Parameters
@@ -129,16 +121,20 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     tracks : Tracks
         The observations, in pixels.
     camera : {"auto", "orthographic", "scaled", "perspective", "radial"}, default "auto"
-        "auto" fits ``scaled`` and ``perspective`` and keeps the pinhole camera
-        when it explains the keypoints clearly better (median residual below
-        ``AUTO_RATIO`` times the weak perspective's), and then ``radial`` when
-        it is as clearly better than the pinhole (a real lens). "radial" is the pinhole
-        with radial distortion k1, k2, fitted from the pinhole's solution.
+        "auto" keeps the scaled (weak-perspective) camera where it fits at the
+        keypoints' noise level, else the pinhole when it explains them
+        clearly better (median residual below ``AUTO_RATIO`` times the weak
+        perspective's), and then ``radial`` when the lens's distortion shows
+        by an information criterion (:func:`.stages.lens`). "radial" is the
+        pinhole with radial distortion k1, k2, fitted from the pinhole's solution.
     principal_point : (2,) or None, default None
         Pinholes only; None takes the centre of the keypoints' bounding box.
     shared_focal : bool, default True
         Pinholes only: one focal length (and for radial one k1, k2: one lens)
         for all views, or one per view.
+    focal : float or None, default None
+        Pinholes only: a prior focal length in pixels (a photo's EXIF), the
+        pinhole starts' focal length; None: the starts' own guesses.
     loss : {"l2", "huber", "soft_l1", "cauchy"}, default "l2"
         rho of the squared residual length, with ``loss_scale`` in pixels.
     outlier_threshold : float, default OUTLIER_THRESHOLD
@@ -149,86 +145,94 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
         Levenberg-Marquardt iterations per solve.
     tol : float, default 1e-10
         Stop when an iteration lowers the cost by less than this fraction.
+    random_state : int >= 0, default 0
+        The seed of every random choice (the two-view tests' and the starts'
+        RANSACs, the robust triangulation's samples).
     """
-    CAMERAS.check("camera", camera)
-    REPROJECTION_LOSSES.check("loss", loss)
-    # the Levenberg-Marquardt options every adjust() of this problem shares
-    lm_options = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
-    flagged = _epipolar_flags(tracks, outlier_threshold)
-    used = informative(tracks, ~flagged)
-    # the pinhole grown view by view, where a pinhole may be kept
-    early = _grown(tracks, used, principal_point, lm_options) \
-        if camera in ("auto", *PINHOLES) and shared_focal and np.isfinite(outlier_threshold) else None
-    every_view = early is not None and early[1].all()
-    # a pinhole asked for, or grown over every view: the scaled fit is its start
-    # or its rival, which needs no more than START_ITERATIONS to be judged (the
-    # weak perspective of pinhole photos converges slowly: COLMAP's 250-photo
-    # spiral ran to 100 iterations, 12 s, for the same pinhole); it is solved
-    # to the end if it is kept
-    short = camera in PINHOLES or (camera == "auto" and every_view)
-    start_options = {**lm_options, "max_iter": min(lm_options["max_iter"], START_ITERATIONS)} \
-        if short else lm_options
-    grown = incremental.incremental_start(tracks.subset(used), finite_threshold(outlier_threshold))
-    if grown is not None and np.isfinite(outlier_threshold):  # its left-outs are suspects too
-        flagged[np.flatnonzero(used)[grown.left_out]] = True
-        used = informative(tracks, ~flagged)
-    fit, affine_rms = scaled_fit(tracks.subset(used), start_options,
-                              None if grown is None else grown[:2])  # (X, cameras)
-    # The models are compared on the same observations, before any is dropped:
-    # a weak-perspective misfit of perspective data is no wrong match.
-    fits = {"scaled": fit}
-    exact = _rms_of(fit, tracks, used) <= 1e3 * EXACT_RMS * image_size(tracks)
-    if exact and camera == "auto":  # orthographic views, noise-free: nothing fits better
-        camera = "scaled"
-    wanted = ("scaled", "perspective") if camera == "auto" else (camera,)
-    others = {"orthographic": ("scaled", "perspective"), "scaled": ("perspective",),
-              "perspective": ("scaled",), "radial": ("scaled",)}
-    # the radial camera starts from the pinhole's fit, so that one comes first
-    needed = ("perspective",) if camera == "radial" else ()
-    # the observations the pinholes rest on: all, or those of the grown start's model
-    registered, in_model = np.ones(tracks.n_views, dtype=bool), np.ones(len(tracks.view), dtype=bool)
-    for model in dict.fromkeys(needed + wanted + ((), others.get(camera, ()))[not exact]):
-        if model == "perspective" and early is not None:
-            fits[model], registered, in_model = _perspective_fit(fit, early, tracks, used, principal_point,
-                                                                 lm_options)
-        elif model not in fits:
-            rows = used & in_model if model in PINHOLES else used
-            fits[model] = FITTERS[model](*(fits["perspective"] if model == "radial" else fit)[:2],
-                                          tracks.subset(rows), principal_point, shared_focal,
-                                          lm_options)
-            fits[model], runaways = without_runaways(fits[model], tracks, rows, lm_options)
-            flagged |= runaways  # suspects, as the two-view test's are
-    # a model is judged on what it rests on: every observation, or the grown start's model
-    rows = {model: used & in_model if model in PINHOLES else used for model in fits}
-    rms = {model: _rms_of(f, tracks, rows[model]) for model, f in fits.items()}
-    # the models are judged by their median residual, which wrong matches do not sway
-    median = {model: _median_of(f, tracks, rows[model]) for model, f in fits.items()}
-    if not np.isfinite(rms[camera if camera != "auto" else "scaled"]):
+    state = BundleState(tracks, BundleOptions(camera, None if principal_point is None else tuple(principal_point),
+                                              shared_focal, focal, loss, loss_scale, outlier_threshold, max_iter,
+                                              tol, random_state))
+    stages.suspects(state)
+    return _final(state, _camera_model(state))
+
+
+def _camera_model(state: BundleState) -> str:
+    """The fits the camera asked for needs, and for "auto" the model kept."""
+    asked = state.options.camera
+    if asked in ("orthographic", "scaled"):
+        stages.affine_start(state, short=False)
+        if asked == "orthographic":
+            _orthographic(state)
+        return asked
+    if asked == "auto" and not stages.perspective_shows(state):
+        stages.affine_start(state, short=False)
+        why = stages.at_noise(state, "scaled")
+        if why:
+            state.record("pinhole", False, why)
+            return "scaled"
+    stages.pinhole(state)
+    camera = _weak_or_pinhole(state) if asked == "auto" else asked
+    if camera == "radial":
+        start = time.perf_counter()
+        fit = FITTERS["radial"](*state.fits["perspective"][:2], state.tracks.subset(state.rows["perspective"]),
+                                state.options.principal_point, state.options.shared_focal, state.options.lm)
+        state.fits["radial"], state.rows["radial"] = fit, state.rows["perspective"]
+        state.record("lens", True, "the radial camera asked for", start)
+    elif camera == "perspective" and asked == "auto":
+        if not state.options.shared_focal:
+            state.record("lens", False, "one focal length per view: no shared lens to fit")
+        elif stages.lens(state):
+            camera = "radial"
+    return camera
+
+
+def _weak_or_pinhole(state: BundleState) -> str:
+    """camera="auto" after the pinhole: the pinhole when the scaled fit was not
+    needed (two views showed perspective) or when the pinhole's median
+    residual is under AUTO_RATIO times the scaled fit's, on the observations
+    both rest on; the scaled camera otherwise (solved to the end by the
+    rounds of wrong matches if its fit was only a start)."""
+    if "scaled" not in state.fits:
+        return "perspective"
+    return "perspective" if state.median("perspective") < stages.AUTO_RATIO * state.median("scaled") else "scaled"
+
+
+def _orthographic(state: BundleState) -> None:
+    """The orthographic fit, from the scaled one with one scale for all views."""
+    tracks, used, lm = state.tracks, state.used, state.options.lm
+    fit = FITTERS["orthographic"](*state.fits["scaled"][:2], tracks.subset(used), None, True, lm)
+    fit, runaways = without_runaways(fit, tracks, used, lm)
+    state.flagged |= runaways  # suspects, as the two-view test's are
+    state.fits["orthographic"], state.rows["orthographic"] = fit, used
+
+
+def _final(state: BundleState, camera: str) -> BundleResult:
+    """Wrong matches peeled off the kept model's fit, and the final adjustment."""
+    tracks, options = state.tracks, state.options
+    rms_by_camera = {model: state.rms(model) for model in state.fits}
+    if not np.isfinite(rms_by_camera[camera]):
         raise MpeError("the keypoints do not determine a 3D shape: no start gives finite "
                        "cameras (a planar scene, or too few points shared by the views?)")
-    if camera == "auto":
-        camera = "perspective" if median["perspective"] < AUTO_RATIO * median["scaled"] \
-            else "scaled"
-        if camera == "perspective" and shared_focal:  # and the lens, as COLMAP's SIMPLE_RADIAL has one
-            camera = _with_lens(fits, rms, median, rows["perspective"], tracks, principal_point, lm_options)
-    _say_if_the_data_disagree(camera, median)
-    if camera in PINHOLES:
-        flagged |= ~in_model  # a filtered observation is a suspect
-    else:
-        registered = np.ones(tracks.n_views, dtype=bool)
-        if short and camera == "scaled":  # kept after a short solve: solved to the end
-            fits[camera] = adjust(*fits[camera][:2], tracks.subset(used), **lm_options)
-    if registered.all():
-        fit, dropped = peel_outliers(fits[camera], tracks, flagged, outlier_threshold, lm_options)
-        return _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options,
-                       registered)
-    # the views left out stay out: the rest is solved on their observations alone
+    _say_if_the_data_disagree(state, camera)
+    fit = state.fits[camera]
+    registered = state.registered if camera in PINHOLES else np.ones(tracks.n_views, dtype=bool)
+    flagged = state.flagged.copy()
+    if camera in PINHOLES and options.robust:
+        flagged |= ~state.rows[camera]  # an observation a pinhole start filtered is a suspect
+    elif camera in PINHOLES and (state.used & registered[tracks.view] & ~state.rows[camera]).any():
+        # every observation kept: the fit is solved on all of its views'
+        fit = adjust(*fit[:2], tracks.subset(state.used & registered[tracks.view]), options.lm)
+    start = time.perf_counter()
     inside = registered[tracks.view]
-    fit, dropped = peel_outliers(fits[camera], tracks.subset(inside), flagged[inside], outlier_threshold,
-                                 lm_options)
-    result = _result(fit, tracks.subset(inside), dropped, camera, max_iter, affine_rms, rms, lm_options,
-                     registered)
-    return _widened(result, tracks, inside)
+    sub = tracks if registered.all() else tracks.subset(inside)
+    fit, dropped = peel_outliers(fit, sub, flagged[inside], options.outlier_threshold, options.lm,
+                                 options.random_state, state.solved.get(camera, True))
+    state.record("wrong matches", options.robust, f"{int(dropped.sum())} observations dropped"
+                 if options.robust else "outlier_threshold=inf keeps every observation", start)
+    result = _result(fit, sub, dropped, camera, options.max_iter, state.affine_rms, rms_by_camera,
+                     options.lm, registered, tuple(state.stages))
+    result.noise, result.affine_misfit = state.noise, state.affine
+    return result if registered.all() else _widened(result, tracks, inside)
 
 
 def _widened(result: BundleResult, tracks, inside) -> BundleResult:
@@ -242,54 +246,12 @@ def _widened(result: BundleResult, tracks, inside) -> BundleResult:
     return result
 
 
-def _with_lens(fits, rms, median, rows, tracks, principal_point, lm_options) -> str:
-    """"radial" where the pinhole with radial distortion (fitted from the
-    pinhole's solution, on what it rests on) explains the keypoints clearly
-    better (median residual under AUTO_RATIO times the pinhole's: a real
-    lens, 11 photos of a castle: 2.04 -> 0.70 px RMS), else "perspective"."""
-    fit = FITTERS["radial"](*fits["perspective"][:2], tracks.subset(rows), principal_point, True, lm_options)
-    fits["radial"] = fit
-    rms["radial"], median["radial"] = _rms_of(fit, tracks, rows), _median_of(fit, tracks, rows)
-    return "radial" if median["radial"] < AUTO_RATIO * median["perspective"] else "perspective"
-
-
-def _grown(tracks, used, principal_point, lm_options):
-    """:func:`.camera_fits.grown_pinhole` on the ``used`` observations: its fit,
-    its (K,) registered views and the (T,) observations of its model, or None."""
-    grown = grown_pinhole(tracks.subset(used), principal_point, lm_options)
-    if grown is None:
-        return None
-    in_model = np.zeros(len(tracks.view), dtype=bool)  # grown[2]: over the used rows
-    in_model[np.flatnonzero(used)[grown[2]]] = True
-    return grown[0], grown[1], in_model
-
-
-def _perspective_fit(scaled, grown, tracks, used, principal_point, lm_options):
-    """The better of two pinholes: the one from the ``scaled`` fit (several focal
-    lengths, both depth orders) and the one grown view by view
-    (:func:`.camera_fits.grown_pinhole`; close photos from far apart fold the
-    affine start, and a guessed principal point can mislead the grown one). The
-    grown one is kept when it registers every view with a median residual no
-    larger on the observations both rest on, or, leaving views out, with one
-    under GROWN_RATIO times the other's. Returns the fit, the (K,) views it
-    registers and the (T,) observations it rests on."""
-    everything = np.ones(tracks.n_views, dtype=bool), np.ones(len(tracks.view), dtype=bool)
-    fit = FITTERS["perspective"](*scaled[:2], tracks.subset(used), principal_point, True, lm_options)
-    fit, _ = without_runaways(fit, tracks, used, lm_options)
-    if grown is None:
-        return fit, *everything
-    other, registered, in_model = grown
-    theirs, ours = _median_of(other, tracks, in_model & used), _median_of(fit, tracks, in_model & used)
-    if theirs <= ours if registered.all() else theirs < GROWN_RATIO * ours:
-        return grown
-    return fit, *everything
-
-
-def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options,
-            registered=None) -> BundleResult:
+def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms_by_camera, lm: LMOptions,
+            registered=None, done=()) -> BundleResult:
     """The result of a fit: weak points out of it, points seen once placed on
     their rays, every residual."""
-    fit, placed, narrow, far = _without_weak(fit, tracks, dropped, lm_options)
+    start = time.perf_counter()
+    fit, placed, narrow, far = _without_weak(fit, tracks, dropped, lm)
     X, cameras, history, converged = fit
     # a narrow point keeps the adjustment's depth (its best guess, and its rays'
     # fit); a far one has none worth keeping: it goes to the cloud's depth
@@ -298,15 +260,15 @@ def _result(fit, tracks, dropped, camera, max_iter, affine_rms, rms, lm_options,
     _say_if_depth_is_free(X, placed, weak, camera)
     placed &= ~weak
     residuals = cameras.project(X, tracks.view, tracks.point) - tracks.z
+    final = Stage("final adjustment", True, f"{int(weak.sum())} points of weak geometry set aside, "
+                  f"{int((~placed & ~weak).sum())} unplaced", time.perf_counter() - start)
     return BundleResult(points=X, cameras=cameras, residuals=residuals, dropped=dropped,
                         counted=_counted(dropped, placed[tracks.point]),
                         converged=converged, iterations=len(history) - 1,
                         termination="converged" if converged else f"stopped at max_iter={max_iter}",
-                        affine_rms=affine_rms, camera=camera,
-                        info={"rms_history": history, "rms_by_camera": rms, "placed": placed,
-                              "weak": weak,
-                              "registered": np.ones(tracks.n_views, dtype=bool) if registered is None
-                              else registered})
+                        affine_rms=affine_rms, camera=camera, placed=placed, weak=weak,
+                        registered=np.ones(tracks.n_views, dtype=bool) if registered is None else registered,
+                        rms_by_camera=rms_by_camera, rms_history=history, stages=(*done, final))
 
 
 def _counted(dropped, placed_rows):
@@ -316,7 +278,7 @@ def _counted(dropped, placed_rows):
     return counted if counted.any() else ~dropped
 
 
-def _without_weak(fit, tracks, dropped, lm_options):
+def _without_weak(fit, tracks, dropped, lm: LMOptions):
     """The fit solved again without the points of weak geometry, as COLMAP
     filters its points before its last adjustment: their rays, nearly
     parallel, pull on the cameras for no depth (a point 7e8 away among COLMAP's
@@ -326,7 +288,7 @@ def _without_weak(fit, tracks, dropped, lm_options):
     if not weak.any():
         return fit, placed, narrow, far
     strong = informative(tracks, ~dropped & ~weak[tracks.point])
-    again = adjust(*fit[:2], tracks.subset(strong), **lm_options)
+    again = adjust(*fit[:2], tracks.subset(strong), lm)
     return again._replace(history=np.concatenate([fit.history, again.history[1:]])), placed, narrow, far
 
 
@@ -355,9 +317,8 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
     """The points (and each view's 2D translation) for known cameras: (K, 2, 3)
     orthonormal rows, an orthographic camera whose image origin is free, or
     (K, 3, 4) pinhole matrices, which fix everything but the points."""
-    REPROJECTION_LOSSES.check("loss", loss)
-    # the Levenberg-Marquardt options every adjust() of this problem shares
-    lm_options = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
+    options = BundleOptions(loss=loss, loss_scale=loss_scale, outlier_threshold=outlier_threshold,
+                            max_iter=max_iter, tol=tol)
     matrices = np.asarray(matrices, dtype=float)
     used = informative(tracks, np.ones(len(tracks.view), dtype=bool))
     sub = tracks.subset(used)
@@ -377,50 +338,37 @@ def known_cameras(tracks: Tracks, matrices: np.ndarray, *, loss: str = "l2",
             cameras.params[:, 3:5] = mean_by_view(residual, sub)
     if cameras.model == MATRIX:
         X = least_squares_points(A, b, sub.point, sub.n_points)
-    fit = adjust(X, cameras, sub, **lm_options, frozen=frozen)
-    fit, dropped = without_outliers(fit, tracks, np.zeros(len(used), dtype=bool),
-                                     outlier_threshold, {**lm_options, "frozen": frozen})
+    lm = LMOptions(loss, loss_scale, max_iter, tol, frozen)
+    fit = adjust(X, cameras, sub, lm)
+    fit, dropped = without_outliers(fit, tracks, np.zeros(len(used), dtype=bool), options.outlier_threshold, lm)
     return _result(fit, tracks, dropped, cameras.model if cameras.model == MATRIX
-                   else "orthographic", max_iter, float("nan"), {}, {**lm_options, "frozen": frozen})
+                   else "orthographic", max_iter, float("nan"), {}, lm)
 
 
 @one_blas_thread
 def from_start(tracks: Tracks, X: np.ndarray, cameras: Cameras, *, loss: str = "l2",
                loss_scale: float = 1.0, outlier_threshold: float = OUTLIER_THRESHOLD,
-               max_iter: int = 100, tol: float = 1e-10) -> BundleResult:
+               max_iter: int = 100, tol: float = 1e-10, random_state: int = 0) -> BundleResult:
     """Bundle adjustment from given points and cameras (a Bundler or BAL
     file's): every parameter free, wrong matches dropped as in
     :func:`bundle_adjust`, no start of ours tried."""
-    REPROJECTION_LOSSES.check("loss", loss)
-    lm_options = dict(loss=loss, loss_scale=loss_scale, max_iter=max_iter, tol=tol)
+    lm = BundleOptions(loss=loss, loss_scale=loss_scale, outlier_threshold=outlier_threshold,
+                       max_iter=max_iter, tol=tol, random_state=random_state).lm
     used = informative(tracks, np.ones(len(tracks.view), dtype=bool))
     if not np.all(np.isfinite(cameras.project(X, tracks.view[used], tracks.point[used]))):
         raise MpeError("the start puts points behind the cameras that see them: not a start "
                        "for these observations (try start='own')")
-    fit = adjust(np.asarray(X, dtype=float), cameras, tracks.subset(used), **lm_options)
-    fit, dropped = peel_outliers(fit, tracks, np.zeros(len(used), dtype=bool), outlier_threshold, lm_options)
-    return _result(fit, tracks, dropped, cameras.model, max_iter, float("nan"), {}, lm_options)
+    fit = adjust(np.asarray(X, dtype=float), cameras, tracks.subset(used), lm)
+    fit, dropped = peel_outliers(fit, tracks, np.zeros(len(used), dtype=bool), outlier_threshold, lm,
+                                 random_state)
+    return _result(fit, tracks, dropped, cameras.model, max_iter, float("nan"), {}, lm)
 
 
-def _median_of(fit, tracks, kept) -> float:
-    return float(np.median(residual_lengths(*fit[:2], tracks, kept)))
-
-
-def _rms_of(fit, tracks, kept) -> float:
-    return float(np.sqrt(np.mean(residual_lengths(*fit[:2], tracks, kept) ** 2)))
-
-
-def _epipolar_flags(tracks, threshold) -> np.ndarray:
-    """(T,) bool: the likely wrong matches that two views at a time show, before
-    any fit (:mod:`.epipolar`); none when wrong matches are not looked for."""
-    if not np.isfinite(threshold):
-        return np.zeros(len(tracks.view), dtype=bool)
-    return epipolar_outliers(tracks.view, tracks.point, tracks.z, tracks.n_views,
-                             tracks.n_points, floor=1e-5 * image_size(tracks))
-
-
-def _say_if_the_data_disagree(camera, median):
-    """One line when another camera model explains the keypoints far better."""
+def _say_if_the_data_disagree(state: BundleState, camera: str) -> None:
+    """One line when another camera model explains the keypoints far better
+    (its median residual under DISAGREE_RATIO times the kept one's), or, for
+    an affine camera, when two views at a time already show perspective."""
+    median = {model: state.median(model) for model in state.fits}
     better = {model: value for model, value in median.items()
               if model != camera and value < DISAGREE_RATIO * median[camera]}
     if better:
@@ -428,6 +376,10 @@ def _say_if_the_data_disagree(camera, median):
         warn(f"the keypoints disagree with the {camera} camera: median residual "
              f"{median[camera]:.3g} px, against {better[model]:.3g} px with the {model} camera "
              f"(camera='{model}')")
+    elif camera not in PINHOLES and stages.perspective_shows(state):
+        warn(f"the keypoints disagree with the {camera} camera: two views at a time are "
+             f"{state.affine:.3g} px from affine epipolar geometry, their noise is {state.noise:.3g} px "
+             f"(camera='perspective')")
 
 
 def place_unplaced(X, cameras, tracks, placed, kept):

@@ -11,13 +11,13 @@ import numpy as np
 
 from mpe3d.solvers.factorize import affine_als, metric_upgrade_pd
 from mpe3d.solvers.linalg import elongation
-from mpe3d.solvers.sfm.adjust import Fit, adjust
+from mpe3d.solvers.sfm.adjust import Fit, LMOptions, adjust
 from mpe3d.solvers.sfm.cameras import (
     Cameras,
     affine_cameras,
     with_distortion,
 )
-from mpe3d.solvers.sfm.support import ELONGATION, ROUND_TOL, mean_by_view, placed_points, weak_points
+from mpe3d.solvers.sfm.support import ELONGATION, mean_by_view, placed_points, weak_points
 from mpe3d.solvers.sfm.tracks import Tracks, image_size, rms
 from mpe3d.solvers.sfm.triangulation import adjusted_points, dlt_rows, least_squares_points
 from mpe3d.solvers.stress import project_rows
@@ -66,21 +66,21 @@ def weak_perspective_start(tracks: Tracks, sweeps: int = 20, tol: float = 1e-10)
     return WeakStart(X, P, scale, t, rms(affine))
 
 
-def scaled_fit(tracks, lm_options, grown=None):
+def scaled_fit(tracks, lm: LMOptions, grown=None):
     """The scaled fit from two affine starts, barely polished and after some
     sweeps, and from the ``grown`` (X, cameras) of :mod:`.incremental`. Which
     one reaches the lowest minimum depends on the tracks, so each is scouted
     for a few iterations and the best one solved to the end."""
     starts = []
     for sweeps in (1, 20):
-        X, P, scale, t, affine_rms = weak_perspective_start(tracks, sweeps, lm_options["tol"])
+        X, P, scale, t, affine_rms = weak_perspective_start(tracks, sweeps, lm.tol)
         starts.append(((X, affine_cameras("scaled", P, scale, t)), affine_rms))
     if grown is not None:
         starts.append((grown, affine_rms))
-    return _best_of(starts, tracks, lm_options)
+    return _best_of(starts, tracks, lm)
 
 
-def _best_of(starts, tracks, lm_options):
+def _best_of(starts, tracks, lm: LMOptions):
     """Scout the ((X, cameras), extra) starts in a race, then solve the lowest
     to the end; returns its :class:`~.adjust.Fit` and its extra.
 
@@ -93,21 +93,21 @@ def _best_of(starts, tracks, lm_options):
     starts' 48 scouting iterations were 17 s of 55 on 250 cameras x 3,000
     points. Scouts stop at a relative decrease of ``ROUND_TOL``: the race
     only ranks them. Over ``RACE_POINTS`` placed points the race runs on
-    that many of them, evenly spread (:func:`_race_points`), and the others are
+    that many of them, evenly spread (:func:`race_points`), and the others are
     placed for the winner's cameras before its solve on all: a 2x lead shows
     on 1,000 points as on 3,000, at a third of the cost an iteration (250
     cameras x 3,000 points: 37 -> 31 s, the same final RMS to 15 digits).
     """
-    scout = {**lm_options, "tol": max(lm_options["tol"], ROUND_TOL)}
+    scout = lm.loose()
     racing = [(Fit(*start, np.empty(0), False), extra) for start, extra in starts]
-    raced = _race_points(tracks)
+    raced = race_points(tracks)
     race_tracks = tracks if raced is None else tracks.subset(raced[tracks.point])
     done = 0
     for stage in _RACE:
-        budget = min(stage, lm_options["max_iter"]) - done
+        budget = min(stage, lm.max_iter) - done
         if budget <= 0:
             break
-        racing = [(_continued(fit, race_tracks, {**scout, "max_iter": budget}), extra)
+        racing = [(_continued(fit, race_tracks, scout.short(budget)), extra)
                   for fit, extra in racing]
         done += budget
         best = min(fit.history[-1] for fit, _ in racing)
@@ -121,13 +121,13 @@ def _best_of(starts, tracks, lm_options):
                                                        placed_points(tracks, slice(None)) & ~raced))
     # the winner solved to the end without its points of weak geometry (see peel_outliers)
     weak = weak_points(scouting, tracks, np.ones(len(tracks.view), dtype=bool))[0]
-    fit = _continued(scouting._replace(converged=False), tracks.subset(~weak[tracks.point]), lm_options)
+    fit = _continued(scouting._replace(converged=False), tracks.subset(~weak[tracks.point]), lm)
     if weak.any():
         fit = fit._replace(X=adjusted_points(fit.X, fit.cameras, tracks, weak))
     return fit, extra
 
 
-def _race_points(tracks) -> np.ndarray | None:
+def race_points(tracks) -> np.ndarray | None:
     """(N,) bool: the placed points a race of starts is run on, RACE_POINTS
     of them evenly spread over the point indices; None when there are no more
     than that (the race runs on all)."""
@@ -139,28 +139,29 @@ def _race_points(tracks) -> np.ndarray | None:
     return raced
 
 
-def _continued(fit, tracks, lm_options):
+def _continued(fit, tracks, lm: LMOptions):
     """``fit`` solved on from where it stands (unless it converged), its history kept."""
     if fit.converged:
         return fit
-    more = adjust(fit.X, fit.cameras, tracks, **lm_options)
+    more = adjust(fit.X, fit.cameras, tracks, lm)
     return more._replace(history=np.concatenate([fit.history, more.history[1:] if len(fit.history)
                                                  else more.history]))
 
 
-def _orthographic(X, scaled: Cameras, tracks, principal_point, shared_focal, lm_options):
+def _orthographic(X, scaled: Cameras, tracks, principal_point, shared_focal, lm: LMOptions, focal=None):
     """From the scaled solution: one scale for all views, folded into the cloud."""
     s = scaled.scale()
     common = float(np.exp(np.mean(np.log(s))))
     R = scaled.current_rotations()
     start = affine_cameras("orthographic", R[:, :2], np.ones(len(s)), scaled.params[:, 3:5])
-    return adjust(X * common, start, tracks, **lm_options)
+    return adjust(X * common, start, tracks, lm)
 
 
-def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, lm_options):
-    """From the scaled solution, at several focal lengths and in both depth
-    orders (weak perspective cannot tell a cloud from its mirror image in depth;
-    a pinhole can): a short solve from each, then the best one to the end."""
+def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, lm: LMOptions, focal=None):
+    """From the scaled solution, at several focal lengths (and at the prior
+    ``focal`` in pixels, when one is known) and in both depth orders (weak
+    perspective cannot tell a cloud from its mirror image in depth; a pinhole
+    can): a short solve from each, then the best one to the end."""
     z = tracks.z
     c = (z.min(axis=0) + z.max(axis=0)) / 2 if principal_point is None \
         else np.asarray(principal_point, dtype=float)
@@ -170,15 +171,16 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, lm_o
     X, t = X - centre, t + s[:, None] * (R[:, :2] @ centre)
     X = _bounded_depth(X)
     starts = []
+    focals = ([] if focal is None else [float(focal)]) + [factor * size for factor in _FOCAL_STARTS]
     for mirror in (1.0, -1.0):  # -X seen through -R[:2] gives the same weak-perspective images
-        for factor in _FOCAL_STARTS:
-            cameras = affine_cameras("perspective", mirror * R[:, :2], s, t, focal=factor * size,
+        for f in focals:
+            cameras = affine_cameras("perspective", mirror * R[:, :2], s, t, focal=f,
                                      principal_point=c, shared_focal=shared_focal)
             starts.append(((_in_front(mirror * X, cameras, tracks), cameras), None))
-    return _best_of(starts, tracks, lm_options)[0]
+    return _best_of(starts, tracks, lm)[0]
 
 
-def grown_pinhole(tracks, principal_point, lm_options, focal=None):
+def grown_pinhole(tracks, principal_point, lm: LMOptions, focal=None, seed: int = 0):
     """The perspective fit from the start grown view by view
     (:mod:`.pinhole_start`), adjusted to the end over the observations it
     kept; its (K,) registered views and those (T,) observations. None when no
@@ -188,10 +190,10 @@ def grown_pinhole(tracks, principal_point, lm_options, focal=None):
     z = tracks.z
     c = (z.min(axis=0) + z.max(axis=0)) / 2 if principal_point is None \
         else np.asarray(principal_point, dtype=float)
-    start = pinhole_start(tracks, c, focal)
+    start = pinhole_start(tracks, c, focal, seed)
     if start is None:
         return None
-    fit = adjust(start.X, start.cameras, tracks.subset(start.kept), **lm_options)
+    fit = adjust(start.X, start.cameras, tracks.subset(start.kept), lm)
     X, placed = _the_rest_placed(fit, tracks, start)
     # what the fit rests on: the observations the start kept, and those of the
     # points it left out only for their narrow rays; the rest are suspects
@@ -221,10 +223,10 @@ def _the_rest_placed(fit, tracks, start):
     return X, start.placed | (todo & ~unseen)
 
 
-def _radial(X, pinhole: Cameras, tracks, principal_point, shared_focal, lm_options):
+def _radial(X, pinhole: Cameras, tracks, principal_point, shared_focal, lm: LMOptions, focal=None):
     """From the pinhole's solution, with k1 = k2 = 0: a lens's distortion is a
     small change of a pinhole's images, so its optimum is near."""
-    return adjust(X, with_distortion(pinhole), tracks, **lm_options)
+    return adjust(X, with_distortion(pinhole), tracks, lm)
 
 
 FITTERS = {"orthographic": _orthographic, "perspective": _perspective, "radial": _radial}

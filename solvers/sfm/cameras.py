@@ -105,6 +105,19 @@ class Cameras:
         return Cameras(self.model, self.rotations, v[:K * self.per_view].reshape(K, -1),
                        v[K * self.per_view:], self.principal_point)
 
+    def take(self, views: np.ndarray) -> "Cameras":
+        """The cameras of ``views`` alone (the shared intrinsics with them)."""
+        return Cameras(self.model, self.rotations[views], self.params[views], self.shared.copy(),
+                       self.principal_point)
+
+    def put(self, views: np.ndarray, part: "Cameras") -> "Cameras":
+        """These cameras with those of ``views`` (and the shared intrinsics) from ``part``."""
+        mine = self.reanchored()
+        part = part.reanchored()
+        rotations, params = mine.rotations.copy(), mine.params.copy()
+        rotations[views], params[views] = part.rotations, part.params
+        return Cameras(self.model, rotations, params, part.shared.copy(), self.principal_point)
+
     def reanchored(self) -> "Cameras":
         """The same cameras with w folded into R0 (w = 0 again)."""
         if self.model in (AFFINE, MATRIX):

@@ -116,7 +116,7 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
     threads : int, default 1
         COLMAP's thread count for verification and mapping.
 
-    ``info["seconds"]`` holds the time of verification and of mapping.
+    ``seconds`` holds the time of verification and of mapping.
     """
     COLMAP_CAMERAS.check("camera", camera)
     pycolmap = require_pycolmap()
@@ -199,9 +199,9 @@ def _result(model, tracks: Tracks, keypoint, names, camera, c, n_models, seconds
                         termination=f"COLMAP's incremental mapper ({n_models} model(s), the "
                                     f"largest kept)",
                         affine_rms=float("nan"), camera=camera if camera != "auto" else "radial",
-                        info={"rms_by_camera": {"radial" if camera == "auto" else camera: rms},
-                              "placed": placed, "weak": np.zeros(N, dtype=bool),
-                              "registered": registered, "seconds": seconds, "models": n_models})
+                        rms_by_camera={"radial" if camera == "auto" else camera: rms},
+                        placed=placed, weak=np.zeros(N, dtype=bool), registered=registered,
+                        seconds=seconds)
 
 
 def _track_points(model, tracks: Tracks, point3d: np.ndarray):

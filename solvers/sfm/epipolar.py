@@ -30,6 +30,8 @@ the peeling after the fit (:func:`.outliers.without_outliers`).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.sparse import csr_matrix
 
@@ -50,6 +52,23 @@ _STACK = 128  # arrays per stack: a fixed split, so the threads share the work
 _MAD = 0.6745  # median |r| / sigma for Gaussian r
 
 
+class TwoViews(NamedTuple):
+    """What two views at a time tell before any 3D fit.
+
+    ``noise`` and ``affine`` are robust sigmas in pixels, each the median over
+    the pairs with matches enough for a fundamental matrix (NaN when none
+    has): of the distances to the pair's epipolar geometry, which holds for
+    pinholes and affine cameras alike (the keypoints' noise), and to its
+    affine epipolar hyperplane (the noise, plus the perspective no affine
+    camera explains). Both estimate the noise of each coordinate: a match's
+    distance to either is one normal variable of it.
+    """
+
+    flagged: np.ndarray  # (T,) bool: likely wrong matches
+    noise: float
+    affine: float
+
+
 def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_views: int,
                       n_points: int, *, sigmas: float = SIGMAS, floor: float = 0.0,
                       seed: int = 0) -> np.ndarray:
@@ -57,21 +76,31 @@ def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_view
     pair's affine epipolar hyperplane, or off its robust plane in it, by more
     than ``sigmas`` robust sigmas (and more than ``floor`` pixels). Observations tested by fewer than two
     pairs (a point seen twice) are never flagged."""
+    return two_view_tests(view, point, z, n_views, n_points, sigmas=sigmas, floor=floor, seed=seed).flagged
+
+
+def two_view_tests(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_views: int,
+                   n_points: int, *, sigmas: float = SIGMAS, floor: float = 0.0,
+                   seed: int = 0, partners: int = PARTNERS) -> TwoViews:
+    """:func:`epipolar_outliers`' flags and the two noise levels of
+    :class:`TwoViews`, from each view and its ``partners`` views sharing the
+    most points."""
     by_view = np.split(np.argsort(view, kind="stable"),
                        np.cumsum(np.bincount(view, minlength=n_views))[:-1])
     tested = []
-    for k, j in _pairs(view, point, n_views, n_points):
+    for k, j in _pairs(view, point, n_views, n_points, partners):
         # the observations of the points both views see
         _, ia, ib = np.intersect1d(point[by_view[k]], point[by_view[j]], return_indices=True)
         tested.append((by_view[k][ia], by_view[j][ib]))
     matches = [np.hstack([z[ta], z[tb]]) for ta, tb in tested]
     rng = np.random.default_rng(seed)
-    far = [a | b for a, b in zip(*(off_affine_subspaces(matches, sigmas=sigmas, floor=floor,
-                                                        rng=rng, dim=dim) for dim in (3, 2)))]
+    (hyperplane, affine), (plane, _) = (_off_affine_subspaces_scaled(matches, sigmas, floor, rng, dim)
+                                        for dim in (3, 2))
+    far = [a | b for a, b in zip(hyperplane, plane)]
     # a pinhole pair's wrong match can sit on the affine hyperplane and off the
     # true epipolar lines: where the pair has matches enough to fix its
     # fundamental matrix, that test votes too
-    epipolar = _off_epipolar_lines_each(matches, sigmas, floor, rng)
+    epipolar, noise = _off_epipolar_lines_each(matches, sigmas, floor, rng)
     far = [f if e is None else f | e for f, e in zip(far, epipolar)]
     flags, tests = np.zeros(len(view)), np.zeros(len(view))
     for (ta, tb), f in zip(tested, far):
@@ -79,7 +108,10 @@ def epipolar_outliers(view: np.ndarray, point: np.ndarray, z: np.ndarray, n_view
             np.add.at(flags, t, f)
             np.add.at(tests, t, 1)
     flagged = (tests >= 2) & (flags > tests / 2)
-    return flagged | _alone_and_off(tested, epipolar, tests)
+    fundamental = [i for i, e in enumerate(epipolar) if e is not None]
+    return TwoViews(flagged | _alone_and_off(tested, epipolar, tests),
+                    float(np.median([noise[i] for i in fundamental])) if fundamental else float("nan"),
+                    float(np.median([affine[i] for i in fundamental])) if fundamental else float("nan"))
 
 
 def _alone_and_off(tested, epipolar, tests) -> np.ndarray:
@@ -139,17 +171,18 @@ def _sampson(F: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.abs(algebraic) / np.sqrt(np.maximum(gradient, 1e-300))
 
 
-def _off_epipolar_lines_each(matches, sigmas, floor, rng) -> list:
+def _off_epipolar_lines_each(matches, sigmas, floor, rng) -> tuple[list, list]:
     """:func:`off_epipolar_lines` of each pair with MIN_FUNDAMENTAL matches or
     more (None for the others), on :func:`~mpe3d.solvers.threads.count`
-    threads, each pair's random numbers drawn in the pairs' order."""
+    threads, each pair's random numbers drawn in the pairs' order; and each
+    tested pair's robust sigma in pixels (NaN for the others)."""
     tested = [i for i, q in enumerate(matches) if len(q) >= MIN_FUNDAMENTAL]
     off = map_drawn(lambda q: _epipolar_draws(len(q), rng, 2 * TRIALS),
                     lambda q, draws: _off_epipolar_lines(q, draws, sigmas, floor), [matches[i] for i in tested])
-    epipolar = [None] * len(matches)
-    for i, f in zip(tested, off):
-        epipolar[i] = f
-    return epipolar
+    epipolar, noise = [None] * len(matches), [float("nan")] * len(matches)
+    for i, (f, sigma) in zip(tested, off):
+        epipolar[i], noise[i] = f, sigma
+    return epipolar, noise
 
 
 def _epipolar_draws(n: int, rng, trials: int):
@@ -170,11 +203,12 @@ def off_epipolar_lines(q: np.ndarray, *, sigmas: float = SIGMAS, floor: float = 
     near the best, twice; a match is off beyond ``sigmas`` robust sigmas of
     the Sampson distance and ``floor`` pixels."""
     rng = np.random.default_rng(0) if rng is None else rng
-    return _off_epipolar_lines(q, _epipolar_draws(len(q), rng, trials), sigmas, floor)
+    return _off_epipolar_lines(q, _epipolar_draws(len(q), rng, trials), sigmas, floor)[0]
 
 
-def _off_epipolar_lines(q, draws, sigmas, floor) -> np.ndarray:
-    """:func:`off_epipolar_lines` with its random numbers drawn (``draws``)."""
+def _off_epipolar_lines(q, draws, sigmas, floor) -> tuple[np.ndarray, float]:
+    """:func:`off_epipolar_lines` with its random numbers drawn (``draws``),
+    and the robust sigma of the distances in pixels."""
     n = len(q)
     Ta, Tb = _normalising(q[:, :2]), _normalising(q[:, 2:])
     a = np.c_[q[:, :2], np.ones(n)] @ Ta.T
@@ -198,17 +232,17 @@ def _off_epipolar_lines(q, draws, sigmas, floor) -> np.ndarray:
         best = _fundamentals(a[near], b[near])
     distance = _sampson(best, a, b)
     sigma = np.median(distance) / _MAD
-    pixels = distance / (0.5 * (Ta[0, 0] + Tb[0, 0]))  # the conditioning's scale undone
-    return (distance > sigmas * sigma) & (pixels > floor)
+    unit = 0.5 * (Ta[0, 0] + Tb[0, 0])  # the conditioning's scale, undone
+    return (distance > sigmas * sigma) & (distance / unit > floor), float(sigma / unit)
 
 
-def _pairs(view, point, n_views, n_points):
-    """The view pairs tested: each view with the PARTNERS views sharing the most
-    points with it, if they share at least MIN_COMMON."""
+def _pairs(view, point, n_views, n_points, partners: int = PARTNERS):
+    """The view pairs tested: each view with the ``partners`` views sharing the
+    most points with it, if they share at least MIN_COMMON."""
     seen = csr_matrix((np.ones(len(view)), (view, point)), shape=(n_views, n_points))
     common = (seen @ seen.T).toarray()
     np.fill_diagonal(common, 0)
-    best = np.argsort(-common, axis=1, kind="stable")[:, :PARTNERS]
+    best = np.argsort(-common, axis=1, kind="stable")[:, :partners]
     pairs = {(min(k, j), max(k, j)) for k in range(n_views) for j in best[k]
              if common[k, j] >= MIN_COMMON}
     return sorted(pairs)
@@ -238,9 +272,14 @@ def off_affine_subspaces(qs: list, *, sigmas: float = SIGMAS, floor: float = 0.0
     most, where numpy's per-call cost is most of the work (backyard: 1.0 s one
     pair at a time; 250 views x 3,000 points, 1,270 pairs of 228-319: 4.3 s
     with those over 256 alone, 2.2 s stacked)."""
-    if not qs:  # views sharing too few points for any pair to be tested
-        return []
     rng = np.random.default_rng(0) if rng is None else rng
+    return _off_affine_subspaces_scaled(qs, sigmas, floor, rng, dim)[0]
+
+
+def _off_affine_subspaces_scaled(qs: list, sigmas, floor, rng, dim) -> tuple[list, list]:
+    """:func:`off_affine_subspaces` and each array's robust sigma in q's units."""
+    if not qs:  # views sharing too few points for any pair to be tested
+        return [], []
     sizes = np.array([len(q) for q in qs])
     draws = [None] * len(qs)
     for members in _stacks(sizes, _DRAWN, len(qs)):  # the order the numbers have always come in
@@ -261,21 +300,22 @@ def off_affine_subspace_each(qs: list, *, sigmas: float = SIGMAS, floor: float =
     for q in qs:
         chosen, fractions = _affine_draws([len(q)], np.random.default_rng(seed), dim)
         draws.append((chosen[0], fractions[0]))
-    return _off_affine_stacked(qs, draws, sigmas, floor, dim)
+    return _off_affine_stacked(qs, draws, sigmas, floor, dim)[0]
 
 
-def _off_affine_stacked(qs, draws, sigmas, floor, dim) -> list:
+def _off_affine_stacked(qs, draws, sigmas, floor, dim) -> tuple[list, list]:
     """The tests of :func:`off_affine_subspaces`, each array's random numbers
-    drawn (``draws``), in stacks of like sizes on the solver's threads."""
+    drawn (``draws``), in stacks of like sizes on the solver's threads; and
+    each array's robust sigma in its units."""
     sizes = np.array([len(q) for q in qs])
     groups = _stacks(sizes, _SCORED, _STACK)
     tested = map_in_order(lambda members: _off_affine_subspaces(
         [qs[i] for i in members], [draws[i] for i in members], sigmas, floor, dim), groups)
-    far = [None] * len(qs)
-    for members, result in zip(groups, tested):
-        for i, f in zip(members, result):
-            far[i] = f
-    return far
+    far, spread = [None] * len(qs), [None] * len(qs)
+    for members, (result, sigma) in zip(groups, tested):
+        for i, f, s in zip(members, result, sigma):
+            far[i], spread[i] = f, float(s)
+    return far, spread
 
 
 def _stacks(sizes: np.ndarray, alone: int, most: int) -> list:
@@ -335,7 +375,7 @@ def _off_affine_subspaces(qs, draws, sigmas, floor, dim) -> list:
     distance = _distances(Q, mean, normal)
     sigma = _masked_median(distance, valid, axis=1) / _MAD
     far = (distance > sigmas * sigma[:, None]) & (distance * scale[:, None] > floor)
-    return _unpadded(far, counts)
+    return _unpadded(far, counts), sigma * scale
 
 
 def _padded(arrays):

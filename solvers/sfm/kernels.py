@@ -255,6 +255,48 @@ def transposed_products(A, B):
     return out
 
 
+@warm_up(0.3, lambda k: k(np.eye(3)[None].copy()))
+@njit(cache=True, nogil=True)
+def inverse_roots(U):
+    """For each symmetric 3x3 block U_i: M_i = L_i^-1, the inverse of its
+    Cholesky factor (U_i = L_i L_i^T, so U_i^-1 = M_i^T M_i and
+    W^T U_i^-1 W = (M_i W)^T (M_i W)), and U_i^-1; False when a block is not
+    positive definite. A closed form per block: numpy's batched eigh and
+    inv of the same blocks took 40% of an iteration at 22,000 points."""
+    n = U.shape[0]
+    M, inverse = np.zeros((n, 3, 3)), np.empty((n, 3, 3))
+    for i in range(n):
+        a = U[i]
+        p0 = a[0, 0]
+        if not p0 > 0.0:
+            return M, inverse, False
+        l00 = np.sqrt(p0)
+        l10, l20 = a[1, 0] / l00, a[2, 0] / l00
+        p1 = a[1, 1] - l10 * l10
+        if not p1 > 0.0:
+            return M, inverse, False
+        l11 = np.sqrt(p1)
+        l21 = (a[2, 1] - l20 * l10) / l11
+        p2 = a[2, 2] - l20 * l20 - l21 * l21
+        if not p2 > 0.0:
+            return M, inverse, False
+        l22 = np.sqrt(p2)
+        m00, m11, m22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+        m10 = -l10 * m00 * m11
+        m21 = -l21 * m11 * m22
+        m20 = -(l20 * m00 + l21 * m10) * m22
+        m = M[i]
+        m[0, 0], m[1, 0], m[1, 1], m[2, 0], m[2, 1], m[2, 2] = m00, m10, m11, m20, m21, m22
+        for r in range(3):
+            for c in range(r, 3):
+                value = 0.0
+                for k in range(max(r, c), 3):
+                    value += m[k, r] * m[k, c]
+                inverse[i, r, c] = value
+                inverse[i, c, r] = value
+    return M, inverse, True
+
+
 @warm_up(0.3, lambda k: k(np.ones((1, 3, 3)), np.ones((1, 3, 6)), _ints([0]), _ints([0])))
 @njit(cache=True, nogil=True)
 def whitened_blocks(root, W, point, rows):

@@ -17,7 +17,6 @@ from mpe3d.solvers.sfm.triangulation import (
     widest_angles,
 )
 
-ROUND_TOL = 1e-6  # between two rounds of dropping wrong matches
 # A cloud longer than this many times its second extent has not been determined
 # along its long axis: the views leave its depth free.
 ELONGATION = 20.0

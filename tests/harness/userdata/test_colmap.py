@@ -9,7 +9,8 @@ from mpe3d.harness.experiment import colmap_sfm
 from mpe3d.harness.experiment.colmap_pipeline import model_misfit, seen_in_photos
 from mpe3d.harness.scene import metrics, photos, shapes
 from mpe3d.harness.userdata import colmap_model
-from mpe3d.harness.userdata.reconstruct import ViewCamera, reconstruct
+from mpe3d.harness.userdata.reconstruct import reconstruct
+from mpe3d.harness.userdata.results import ViewCamera
 from mpe3d.reports.claims import FAILS, HOLDS, colmap_fails_below
 from mpe3d.solvers.sfm import colmap_link
 from tests.helpers import close_up_keypoints, similarity_rms

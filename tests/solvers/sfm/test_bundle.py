@@ -250,7 +250,7 @@ def test_a_point_seen_once_lands_on_its_ray_through_a_pinhole(rng):
     z[np.flatnonzero(tracks.point[rows] == 5)] += [60.0, -40.0]  # away from the centre's image
     seen_once = bundle.Tracks(tracks.view[rows], tracks.point[rows], z, N, K)
     result = bundle.bundle_adjust(seen_once, "perspective", principal_point=[320.0, 240.0])
-    assert not result.info["placed"][5]
+    assert not result.placed[5]
     assert np.abs(result.residuals[seen_once.point == 5]).max() < 1e-6
 
 
@@ -439,7 +439,7 @@ def test_a_race_on_a_share_of_many_points_reaches_the_minimum_the_whole_race_rea
     n, k = 1500, 8
     X, _, view, point, z = random_views(rng, "perspective", n, k, turn=0.5, noise=0.5, keep=0.8)
     tracks = bundle.Tracks(view, point, z, n, k)
-    raced = camera_fits._race_points(tracks)
+    raced = camera_fits.race_points(tracks)
     assert raced.sum() == camera_fits.RACE_POINTS and raced[0] and raced[-1]
     assert np.all(np.diff(np.flatnonzero(raced)) <= 2)  # spread over all of them
     shared = bundle.bundle_adjust(tracks, "perspective")

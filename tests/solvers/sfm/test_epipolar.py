@@ -3,7 +3,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from mpe3d.solvers.sfm import bundle
+from mpe3d.solvers.sfm import bundle, stages
 from mpe3d.solvers.sfm.epipolar import epipolar_outliers
 from mpe3d.solvers.sfm.epipolar_kernels import eight_point_samples, sampson_costs, subspace_costs
 from tests.helpers import SHARED, random_views
@@ -78,7 +78,9 @@ def test_on_dino_with_three_percent_wrong_matches_most_are_flagged_before_the_fi
     assert flagged[~wrong].mean() <= 0.002
     # on the clean tracks a few suspicions (0.1%), which the fit takes back
     tracks = bundle.Tracks(view, point, z, point.max() + 1, view.max() + 1)
-    suspects = bundle._epipolar_flags(tracks, bundle.OUTLIER_THRESHOLD)
+    state = stages.BundleState(tracks, stages.BundleOptions())
+    stages.suspects(state)
+    suspects = state.flagged
     assert suspects.mean() <= 0.002
     assert not bundle.bundle_adjust(tracks).dropped[suspects].any()
 
