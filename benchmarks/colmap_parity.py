@@ -50,12 +50,12 @@ from mpe3d.solvers import threads
 METHODS = ("bundle", "colmap")
 
 
-def spiral(count: int, size: int, seed: int) -> photos.PhotoCameras:
+def spiral(count: int, size: int, seed: int, fill: float = 0.85) -> photos.PhotoCameras:
     """The spiral of ``photos.spiral_cameras`` with photos about 15-18 degrees
     apart (the spacing photogrammetry guides ask for: half a turn for 10
     photos, one for 25, two for 100 and more), turned about the vertical by
     an angle drawn from ``seed``."""
-    cams = photos.spiral_cameras(count, size=size, turns=min(2.0, max(0.5, count / 25)))
+    cams = photos.spiral_cameras(count, size=size, turns=min(2.0, max(0.5, count / 25)), fill=fill)
     a = np.random.default_rng(seed).uniform(0, 2 * np.pi)
     turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
     return photos.PhotoCameras(cams.rotations @ turn.T, cams.translations, cams.focal, cams.width,

@@ -42,14 +42,18 @@ HERE = Path(__file__).resolve().parent
 FLIP = np.diag([1.0, -1.0, -1.0])  # Bundler's camera frame to COLMAP's
 
 
-def rendered(shape: str, count: int, seed: int, work: Path) -> tuple[Path, dict]:
-    """The rendered set's images folder and its exact poses, made once."""
+def rendered(shape: str, count: int, seed: int, work: Path, k1: float = 0.0,
+             fill: float | None = None) -> tuple[Path, dict]:
+    """The rendered set's images folder and its exact poses, made once:
+    through a lens of radial distortion ``k1`` (COLMAP's RADIAL camera), the
+    bounding sphere filling ``fill`` of the width (None: the spiral's 0.85)."""
     from colmap_parity import spiral
 
     from mpe3d.harness.scene import photos, shapes
 
-    folder = work / f"{shape}-{count}-s{seed}"
-    cams = spiral(count, 400, seed)
+    folder = work / (f"{shape}-{count}-s{seed}" + (f"-k{k1:g}" if k1 else "") + (f"-fill{fill:g}" if fill else ""))
+    cams = spiral(count, 400, seed, fill=fill or 0.85)
+    cams = photos.PhotoCameras(cams.rotations, cams.translations, cams.focal, cams.width, cams.height, (k1, 0.0))
     names = [f"image_{k:04d}.png" for k in range(count)]
     if not (folder / "done").exists():
         photos.save_images(photos.render(shapes.load_shape(shape), cams, seed=seed), folder / "images")
@@ -154,6 +158,10 @@ def main(argv=None) -> int:
     parser.add_argument("--sizes", nargs="*", type=int, default=[10, 25, 100, 250])
     parser.add_argument("--shape", default="chair")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--lens", type=float, default=0.0, metavar="K1",
+                        help="render through a lens of radial distortion K1 (COLMAP's RADIAL camera)")
+    parser.add_argument("--fill", type=float, help="the bounding sphere's share of the photo's width "
+                        "(default 0.85; over 1, the object fills the frame)")
     parser.add_argument("--real", nargs="*", type=Path, default=[])
     parser.add_argument("--threads", type=int, default=len(os.sched_getaffinity(0)))
     parser.add_argument("--mapper", choices=("incremental", "global"), default="incremental")
@@ -161,9 +169,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     print(json.dumps({"machine": describe()}), flush=True)
     for count in args.sizes:
-        images, truth = rendered(args.shape, count, args.seed, args.work)
-        print(json.dumps(case(f"{args.shape}-{count}-s{args.seed}", images, truth, args.work, args.threads,
-                              args.mapper)), flush=True)
+        images, truth = rendered(args.shape, count, args.seed, args.work, args.lens, args.fill)
+        print(json.dumps(case(images.parent.name, images, truth, args.work, args.threads, args.mapper)),
+              flush=True)
     for folder in args.real:
         print(json.dumps(case(folder.name, folder / "images", reference(folder), args.work, args.threads,
                               args.mapper)), flush=True)

@@ -24,8 +24,6 @@ from __future__ import annotations
 import copy
 
 import numpy as np
-from scipy.spatial import cKDTree
-from scipy.spatial.distance import cdist
 
 from mpe3d.options import STRESS_LOSSES
 from mpe3d.solvers import kernels, point_kernels
@@ -53,6 +51,8 @@ def sparse_pairs(Y: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, n
     """
     n = len(Y)
     k = min(NEIGHBOURS, n - 1)
+    from scipy.spatial import cKDTree  # here: scipy.spatial costs 0.14 s to import, keypoints never need it
+
     _, nn = cKDTree(Y).query(Y, k=k + 1)
     i = np.concatenate([np.repeat(np.arange(n), k), np.repeat(np.arange(n), RANDOM_PAIRS)])
     j = np.concatenate([nn[:, 1:].ravel(), rng.integers(0, n, size=n * RANDOM_PAIRS)])
@@ -221,6 +221,8 @@ class Stress:
                 out.append(point_kernels.row_median_residuals(self.D[k], np.ascontiguousarray(Y[:, 0]),
                                                         np.ascontiguousarray(Y[:, 1]), cols))
                 continue
+            from scipy.spatial.distance import cdist
+
             step = max(1, _BLOCK_ENTRIES // max(len(cols), 1))
             out.append(np.concatenate([
                 np.median(np.abs(self.D[k][a:a + step, cols] - cdist(Y[a:a + step], Y[cols])), axis=1)
@@ -275,6 +277,8 @@ class Stress:
         n = len(Y)
         grad = np.zeros_like(Y) if want_grad else None
         total = 0.0
+        from scipy.spatial.distance import cdist  # the numpy reference only: scipy.spatial costs 0.14 s
+
         step = max(1, _BLOCK_ENTRIES // max(n, 1))
         for a in range(0, n, step):
             b = min(n, a + step)

@@ -64,15 +64,16 @@ from mpe3d.solvers.sfm.support import (
     mean_by_view,
     weak_points,
 )
-from mpe3d.solvers.sfm.tracks import EXACT_RMS, Tracks, image_size, rms
+from mpe3d.solvers.sfm.tracks import EXACT_RMS, Tracks, image_size, residual_lengths, rms
 from mpe3d.solvers.sfm.triangulation import (
     dlt_rows,
     least_squares_points,
 )
 
-# The compiled kernels a bundle adjustment calls: the SfM stack's own and the
-# affine factorisation's (warmup.warm(only=KERNELS) loads no stress kernel).
-KERNELS = ("mpe3d.solvers.sfm.", "mpe3d.solvers.point_kernels.affine_als")
+# The compiled kernels loaded before a bundle adjustment's clock: the SfM
+# stack's own (warmup.warm(only=KERNELS) loads no stress kernel; the affine
+# factorisation's, 0.3 s to load, only when the affine start runs)
+KERNELS = ("mpe3d.solvers.sfm.",)
 _TRANSLATION_SWEEPS = 3  # known orthographic cameras: points and image origins in turn
 _PLACING_STEPS = 10  # Gauss-Newton steps that put a point seen once on its ray
 DISAGREE_RATIO = 0.5  # another model this much better is said
@@ -171,19 +172,7 @@ def _camera_model(state: BundleState) -> str:
             state.record("pinhole", False, why)
             return "scaled"
     stages.pinhole(state)
-    camera = _weak_or_pinhole(state) if asked == "auto" else asked
-    if camera == "radial":
-        start = time.perf_counter()
-        fit = FITTERS["radial"](*state.fits["perspective"][:2], state.tracks.subset(state.rows["perspective"]),
-                                state.options.principal_point, state.options.shared_focal, state.options.lm)
-        state.fits["radial"], state.rows["radial"] = fit, state.rows["perspective"]
-        state.record("lens", True, "the radial camera asked for", start)
-    elif camera == "perspective" and asked == "auto":
-        if not state.options.shared_focal:
-            state.record("lens", False, "one focal length per view: no shared lens to fit")
-        elif stages.lens(state):
-            camera = "radial"
-    return camera
+    return _weak_or_pinhole(state) if asked == "auto" else asked
 
 
 def _weak_or_pinhole(state: BundleState) -> str:
@@ -209,30 +198,56 @@ def _orthographic(state: BundleState) -> None:
 def _final(state: BundleState, camera: str) -> BundleResult:
     """Wrong matches peeled off the kept model's fit, and the final adjustment."""
     tracks, options = state.tracks, state.options
-    rms_by_camera = {model: state.rms(model) for model in state.fits}
-    if not np.isfinite(rms_by_camera[camera]):
+    rms_by_camera = {fitted: state.rms(fitted) for fitted in state.fits}
+    model = "perspective" if camera == "radial" else camera  # the lens comes after the wrong matches
+    if not np.isfinite(rms_by_camera[model]):
         raise MpeError("the keypoints do not determine a 3D shape: no start gives finite "
                        "cameras (a planar scene, or too few points shared by the views?)")
-    _say_if_the_data_disagree(state, camera)
-    fit = state.fits[camera]
+    _say_if_the_data_disagree(state, model)
+    fit = state.fits[model]
     registered = state.registered if camera in PINHOLES else np.ones(tracks.n_views, dtype=bool)
     flagged = state.flagged.copy()
     if camera in PINHOLES and options.robust:
-        flagged |= ~state.rows[camera]  # an observation a pinhole start filtered is a suspect
-    elif camera in PINHOLES and (state.used & registered[tracks.view] & ~state.rows[camera]).any():
+        flagged |= ~state.rows[model]  # an observation a pinhole start filtered is a suspect
+    elif camera in PINHOLES and (state.used & registered[tracks.view] & ~state.rows[model]).any():
         # every observation kept: the fit is solved on all of its views'
         fit = adjust(*fit[:2], tracks.subset(state.used & registered[tracks.view]), options.lm)
-    start = time.perf_counter()
     inside = registered[tracks.view]
     sub = tracks if registered.all() else tracks.subset(inside)
-    fit, dropped = peel_outliers(fit, sub, flagged[inside], options.outlier_threshold, options.lm,
-                                 options.random_state, state.solved.get(camera, True))
-    state.record("wrong matches", options.robust, f"{int(dropped.sum())} observations dropped"
-                 if options.robust else "outlier_threshold=inf keeps every observation", start)
+    fit, dropped = _wrong_matches(state, fit, sub, flagged[inside], state.solved.get(model, True))
+    if camera in PINHOLES and (camera == "radial" or options.camera == "auto"):
+        fit, dropped, camera = _lens(state, fit, sub, dropped, camera, rms_by_camera)
     result = _result(fit, sub, dropped, camera, options.max_iter, state.affine_rms, rms_by_camera,
                      options.lm, registered, tuple(state.stages))
     result.noise, result.affine_misfit = state.noise, state.affine
     return result if registered.all() else _widened(result, tracks, inside)
+
+
+def _wrong_matches(state: BundleState, fit, tracks, flagged, solved):
+    """:func:`.outliers.peel_outliers` of ``fit``, recorded as a stage."""
+    options, start = state.options, time.perf_counter()
+    fit, dropped = peel_outliers(fit, tracks, flagged, options.outlier_threshold, options.lm,
+                                 options.random_state, solved)
+    state.record("wrong matches", options.robust, f"{int(dropped.sum())} observations dropped"
+                 if options.robust else "outlier_threshold=inf keeps every observation", start)
+    return fit, dropped
+
+
+def _lens(state: BundleState, fit, tracks, dropped, camera, rms_by_camera):
+    """The radial camera asked for, or for "auto" the lens when the keypoints
+    the pinhole kept show one (:func:`.stages.lens`): fitted on them, and
+    its own wrong matches peeled off. Returns the fit, the observations
+    dropped and the camera."""
+    if not state.options.shared_focal and camera != "radial":
+        state.record("lens", False, "one focal length per view: no shared lens to fit")
+        return fit, dropped, camera
+    kept = informative(tracks, ~dropped)
+    radial = stages.lens(state, fit, tracks, kept, asked=camera == "radial")
+    if radial is None:
+        return fit, dropped, camera
+    rms_by_camera["radial"] = float(np.sqrt(np.mean(residual_lengths(*radial[:2], tracks, kept) ** 2)))
+    fit, dropped = _wrong_matches(state, radial, tracks, dropped, True)
+    return fit, dropped, "radial"
 
 
 def _widened(result: BundleResult, tracks, inside) -> BundleResult:

@@ -48,17 +48,21 @@ from mpe3d.solvers.sfm.tracks import EXACT_RMS, RAYLEIGH_MEDIAN, Tracks, image_s
 START_ITERATIONS = 20  # the scaled fit's when it is only a pinhole's start or rival
 # Two views show perspective when the distances to their affine epipolar
 # hyperplane exceed this many times those to their epipolar geometry (both
-# estimate the keypoints' noise under an affine camera).
-PERSPECTIVE = 2.0
+# estimate the keypoints' noise under an affine camera: measured 1.00-1.01 on
+# orthographic views with 0.5-2 px of noise; 1.74 on VGG's dino, 2.09 on 250
+# photos round a sphere, 4-92 on photos).
+PERSPECTIVE = 1.5
 # A fit is at the noise level when its median residual length is at most this
-# many times the keypoints' noise (a right model's is about 1.18 times it, the
-# Rayleigh median, or less where tracks are short).
-AT_NOISE = 2.0
+# many times the keypoints' noise: a right model's is about 1.18 times it (the
+# Rayleigh median) or less where tracks are short (measured 0.63-1.21 on
+# synthetic, real-track and photo sets), a wrong one's 1.64 (the scaled camera
+# on dino, whose pinhole reaches 1.00) to 21. Too tight costs a second
+# opinion; too loose would keep a wrong model.
+AT_NOISE = 1.5
 NOISE_FLOOR = 1e-5  # of the image size: keypoints are never more exact (as robust_sigma's)
 NOISE_PARTNERS = 2  # views each view is tested with when only the noise is wanted
 AUTO_RATIO = 0.8  # camera="auto" keeps the pinhole below this share of the weak median residual
 GROWN_RATIO = 0.5  # the grown pinhole, leaving views out, is kept below this share of the other's median
-LENS_SIGMAS = 3.0  # the lens is judged on the residuals within this many robust sigmas of the pinhole's
 
 
 @dataclass(frozen=True)
@@ -280,8 +284,10 @@ def _opinion(state: BundleState, source: str) -> Opinion | None:
         # 47 iterations, 2.2 s, to 1e-10, most of them on points of weak geometry)
         grown = grown_pinhole(tracks.subset(used), options.principal_point, options.lm.loose(),
                               options.focal, options.random_state)
-        state.record("grown pinhole", True, "two views show perspective" if perspective_shows(state)
-                     else "a second opinion", start)
+        state.record("grown pinhole", True, ("two views show perspective" if perspective_shows(state)
+                                             else "a second opinion") + "; started at " + (
+            f"the prior focal length {options.focal:.4g} px" if options.focal is not None
+            else "1.2 times the image size (no prior focal length)"), start)
         if grown is None:
             return None
         rests_on = np.zeros(len(tracks.view), dtype=bool)
@@ -315,58 +321,62 @@ def _better(state: BundleState, first: Opinion, second: Opinion) -> Opinion:
     return grown if keep else other
 
 
-def lens(state: BundleState) -> str:
-    """Stage 4, for ``camera="auto"``: why the radial camera (one lens, k1 and
-    k2, fitted from the pinhole's solution) explains the keypoints better than
-    the plain pinhole, or "" when it does not.
+def lens(state: BundleState, pinhole: Fit, tracks: Tracks, rows: np.ndarray, asked: bool) -> Fit | None:
+    """Stage 4: the radial camera (one lens, k1 and k2, fitted from the
+    pinhole's solution on the observations ``rows``, those the rounds of
+    wrong matches kept: a lens fitted before them bends to the wrong matches
+    at the frame's edges), when it is ``asked`` for, or, for
+    ``camera="auto"``, when it explains the keypoints better; None when it
+    does not.
 
     The rule is the Bayesian information criterion of the two nested models
-    on the residuals within LENS_SIGMAS robust sigmas of the pinhole's (those
-    of both fits on the same observations): the radial camera when
-    ``n log(SSR_pinhole / SSR_radial) > 2 log n`` (n residual coordinates,
-    2 more parameters), first on at most RACE_POINTS points (both models
-    refitted there from the pinhole's solution), and, when it wins there, on
-    all. With no distortion the log ratio is about 2 / n, and the penalty
-    is 2 log n / n; a lens of k1 = -0.03 at f = 2,400 px moves the corners by
-    9 px and the ratio by far more.
+    on their robust residuals (:func:`_lens_criterion`), first on at most
+    RACE_POINTS points (both models refitted there from the pinhole's
+    solution), and, when the radial camera wins there, on all. With no
+    distortion the pinhole's cost exceeds the radial camera's by about 2
+    (a chi-square of 2 degrees of freedom), under the penalty of 2 log n;
+    a lens of k1 = -0.03 at f = 2,400 px moves the corners by 9 px and the
+    cost by far more.
     """
     start = time.perf_counter()
-    tracks, options = state.tracks, state.options
-    rows = state.rows["perspective"]
+    options = state.options
     sub = tracks.subset(rows)
+    if asked:
+        radial = FITTERS["radial"](*pinhole[:2], sub, options.principal_point, options.shared_focal, options.lm)
+        state.record("lens", True, "the radial camera asked for", start)
+        return radial
     raced = race_points(sub)
     scout = rows if raced is None else rows & raced[tracks.point]
-    X, cameras = state.fits["perspective"][:2]
     lm = options.lm.loose()
     # on the scouts, the pinhole is refitted as the radial camera is: neither
     # gains from the points left out
-    pinhole = adjust(X, cameras, tracks.subset(scout), lm) if raced is not None else state.fits["perspective"]
-    radial = FITTERS["radial"](*pinhole[:2], tracks.subset(scout), options.principal_point, True, lm)
-    better, why = _lens_criterion(pinhole, radial, tracks, scout, lm)
+    scouted = adjust(*pinhole[:2], tracks.subset(scout), lm) if raced is not None else pinhole
+    radial = FITTERS["radial"](*scouted[:2], tracks.subset(scout), options.principal_point, True, lm)
+    better, why = _lens_criterion(scouted, radial, tracks, scout)
     if better and raced is not None:  # shown on the scouts: fitted and judged on all
-        radial = FITTERS["radial"](X, cameras, sub, options.principal_point, True, options.lm)
-        better, why = _lens_criterion(state.fits["perspective"], radial, tracks, rows, lm)
-    if better:
-        state.fits["radial"], state.rows["radial"] = radial, rows
+        radial = FITTERS["radial"](*pinhole[:2], sub, options.principal_point, True, options.lm)
+        better, why = _lens_criterion(pinhole, radial, tracks, rows)
     state.record("lens", True, why + ("" if raced is None else f" (decided on {RACE_POINTS} points first)"),
                  start)
-    return why if better else ""
+    return radial if better else None
 
 
-def _lens_criterion(pinhole: Fit, radial: Fit, tracks: Tracks, rows: np.ndarray,
-                    lm: LMOptions) -> tuple[bool, str]:
-    """The information criterion of :func:`lens` on the cost both fits minimise
-    (the loss's), over the observations ``rows`` within LENS_SIGMAS robust
-    sigmas of the pinhole's fit."""
+def _lens_criterion(pinhole: Fit, radial: Fit, tracks: Tracks, rows: np.ndarray) -> tuple[bool, str]:
+    """The information criterion of :func:`lens` on the robust residuals of
+    the observations ``rows``: each fit's cost under soft_l1 at the
+    pinhole's robust sigma (a Gaussian's -2 log-likelihood for residuals
+    within it, growing only linearly beyond, so that the wrong matches not
+    yet peeled off do not decide), the radial camera kept when the pinhole's
+    exceeds its by more than 2 log n (n residual coordinates, 2 more
+    parameters: the BIC)."""
     lengths = residual_lengths(*pinhole[:2], tracks, rows)
-    sigma = float(np.median(lengths)) / RAYLEIGH_MEDIAN
-    inside = np.flatnonzero(rows)[lengths <= LENS_SIGMAS * max(sigma, 1e-300)]
-    cost_pinhole, cost_radial = (robust_cost(residual_lengths(*fit[:2], tracks, inside) ** 2, lm)
-                                 for fit in (pinhole, radial))
-    n = 2 * len(inside)
-    if not (n and np.isfinite(cost_radial) and cost_radial > 0):
+    sigma = max(float(np.median(lengths)) / RAYLEIGH_MEDIAN, 1e-300)
+    robust = LMOptions(loss="soft_l1", loss_scale=sigma)
+    cost_pinhole = robust_cost(lengths ** 2, robust) / sigma ** 2
+    cost_radial = robust_cost(residual_lengths(*radial[:2], tracks, rows) ** 2, robust) / sigma ** 2
+    if not np.isfinite(cost_radial):
         return False, "the plain pinhole: the radial fit failed"
-    gain, penalty = n * np.log(cost_pinhole / cost_radial), 2 * np.log(n)
+    gain, penalty = cost_pinhole - cost_radial, 2 * np.log(2 * int(rows.sum()))
     k1, k2 = radial.cameras.distortion()[0]
     verdict = "the radial camera" if gain > penalty else "the plain pinhole"
     return gain > penalty, (f"{verdict}: information gain {gain:.3g} against a penalty of {penalty:.3g} "

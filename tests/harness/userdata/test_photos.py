@@ -220,3 +220,19 @@ def test_photos_colmap_cannot_register_are_one_line(tmp_path, capsys):
     code = main(["reconstruct", str(folder), "--solver", "colmap", "--out", str(out)])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and not out.exists(), err
+
+
+def test_auto_keeps_the_lens_of_distorted_photos_and_none_of_undistorted_ones(shoot, tmp_path):
+    """camera="auto" on rendered photos: through a lens of k1 = -0.3 (the
+    object filling the frame, so its edges move by pixels) it keeps the
+    radial camera, and recovers k1; without a lens, the plain pinhole."""
+    spiral = photos.spiral_cameras(10, size=320, turns=0.4, fill=1.6, distance=1.2)
+    lens = photos.PhotoCameras(spiral.rotations, spiral.translations, spiral.focal, spiral.width,
+                               spiral.height, (-0.3, 0.0))
+    folder = tmp_path / "lens"
+    photos.save_images(photos.render(shapes.load_shape("chair"), lens, seed=2), folder)
+    distorted = reconstruct(folder).report
+    assert distorted["camera"] == "radial", [s["why"] for s in distorted["stages"] if s["stage"] == "lens"]
+    assert distorted["cameras"][0]["k1"] == pytest.approx(-0.3, abs=0.1)
+    plain = reconstruct(shoot[0]).report
+    assert plain["camera"] == "perspective", [s["why"] for s in plain["stages"] if s["stage"] == "lens"]
