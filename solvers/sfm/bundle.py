@@ -122,12 +122,14 @@ def bundle_adjust(tracks: Tracks, camera: str = "auto", *, principal_point=None,
     tracks : Tracks
         The observations, in pixels.
     camera : {"auto", "orthographic", "scaled", "perspective", "radial"}, default "auto"
-        "auto" keeps the scaled (weak-perspective) camera where it fits at the
-        keypoints' noise level, else the pinhole when it explains them
-        clearly better (median residual below ``AUTO_RATIO`` times the weak
-        perspective's), and then ``radial`` when the lens's distortion shows
-        by an information criterion (:func:`.stages.lens`). "radial" is the
-        pinhole with radial distortion k1, k2, fitted from the pinhole's solution.
+        "auto" decides in stages (:mod:`.stages`): the pinhole where two views
+        at a time already show perspective; else the scaled (weak-perspective)
+        camera where it fits at the keypoints' noise level, or the pinhole
+        where it explains them clearly better (median residual below
+        ``AUTO_RATIO`` times the weak perspective's); then ``radial`` when
+        the lens's distortion shows by an information criterion
+        (:func:`.stages.lens`). "radial" is the pinhole with radial
+        distortion k1, k2, fitted from the pinhole's solution.
     principal_point : (2,) or None, default None
         Pinholes only; None takes the centre of the keypoints' bounding box.
     shared_focal : bool, default True

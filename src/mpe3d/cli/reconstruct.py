@@ -52,9 +52,10 @@ def add_parser(sub) -> None:
     rec.add_argument("--camera", default="auto",
                      choices=CAMERAS.names,
                      help="the camera model for reprojection (default auto: the pinhole camera "
-                     "when it fits clearly better than weak perspective, with its lens when that "
-                     "fits clearly better still; radial: the pinhole with radial distortion k1, "
-                     "k2, Bundler's and BAL's camera)")
+                     "where two views show perspective or it fits clearly better than weak "
+                     "perspective, with its lens where an information criterion says the keypoints "
+                     "show one; radial: the pinhole with radial distortion k1, k2, Bundler's and "
+                     "BAL's camera)")
     rec.add_argument("--start", choices=STARTS.names,
                      help="where bundle adjustment starts: the input's cameras and points (a "
                      "Bundler or BAL file; the default when it has them) or mpe3d's own start")
