@@ -22,12 +22,17 @@ house              no     ``mpe3d reconstruct house/keypoints.csv`` (``../shared
 =================  =====  ======================================================
 
 A case's time is the best of its repeats (two or three for the quick cases;
-the machine's noise moved single runs by 15 % here),
-in units of ``benchmarks/machine.py``'s loop measured in the same run
-(``solo_s``), so that a faster or slower machine moves the baseline and the
-reading alike. The inputs are made by this checkout's code (the photos
-rendered by ``mpe3d.harness.scene.photos``) and kept in ``--work`` under a
-digest of what made them, so a rerun renders nothing and a changed renderer
+the machine's noise moved single runs by 15 % here), in units of
+``benchmarks/machine.py``'s loop timed just before and after the case, so
+that a faster or slower machine moves the baseline and the reading alike.
+The loop is interpreter work and the cases are mostly numeric, so on a
+machine whose speed drifts the units drift too (30 % within an hour here):
+``--against OTHER`` times another install's ``mpe3d`` in turns with this one
+on the same inputs, and gives their ratio in the same run, which no drift
+moves; a case flagged against the baseline is confirmed or cleared that way.
+The inputs are made by this checkout's code (the photos rendered by
+``mpe3d.harness.scene.photos``) and kept in ``--work`` under a digest of
+what made them, so a rerun renders nothing and a changed renderer
 renders again. One JSON line a case on stdout, then the table (case,
 baseline, now, ratio) on stderr; a case more than ``SLOWER`` times its
 baseline is flagged, and the exit code is 1 when one is.
@@ -60,7 +65,7 @@ from pathlib import Path
 from typing import Callable
 
 import numpy as np
-from machine import describe
+from machine import at_once, describe
 
 HERE = Path(__file__).resolve().parent
 BASELINE = HERE / "regression_baseline.json"
@@ -162,32 +167,50 @@ def inputs(case: Case, work: Path) -> Path:
     return folder
 
 
-def timed(command: list[str], repeats: int) -> float:
-    """The best wall time of ``repeats`` runs, each in an empty folder with no
-    tracking server named (a fresh SQLite store there)."""
+def timed(command: list[str]) -> float:
+    """One run's wall time, in an empty folder with no tracking server named
+    (a fresh SQLite store there)."""
     env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
-    best = float("inf")
-    for _ in range(repeats):
-        with tempfile.TemporaryDirectory(prefix="mpe3d-regression-") as cwd:
-            start = time.perf_counter()
-            done = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True)
-            seconds = time.perf_counter() - start
-        if done.returncode not in (0, 1):  # 1: a sweep with a failed run still timed its work
-            sys.exit(f"regression: {' '.join(command)} exited {done.returncode}: "
-                     f"{(done.stderr.strip().splitlines() or [''])[-1]}")
-        best = min(best, seconds)
-    return best
+    with tempfile.TemporaryDirectory(prefix="mpe3d-regression-") as cwd:
+        start = time.perf_counter()
+        done = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True)
+        seconds = time.perf_counter() - start
+    if done.returncode not in (0, 1):  # 1: a sweep with a failed run still timed its work
+        sys.exit(f"regression: {' '.join(command)} exited {done.returncode}: "
+                 f"{(done.stderr.strip().splitlines() or [''])[-1]}")
+    return seconds
+
+
+def measured(case: Case, folder: Path, commands: list[list[str]]) -> tuple[list[float], float]:
+    """The best of ``case.repeats`` runs of each command (the commands taking
+    turns, so that a slow minute of the machine falls on both), and the
+    machine's loop timed just before and after them: the case's unit (this
+    virtual machine's loop moved by 30 % within an hour)."""
+    loops = [at_once(1)]
+    best = [float("inf")] * len(commands)
+    for _ in range(case.repeats):
+        for i, command in enumerate(commands):
+            best[i] = min(best[i], timed(command + case.argv(folder)))
+    loops.append(at_once(1))
+    return best, float(np.mean(loops))
 
 
 def table(rows: list[dict]) -> str:
-    lines = ["| case | baseline | now | ratio | |", "|---|---|---|---|---|"]
+    against = any("against_s" in row for row in rows)
+    lines = ["| case | baseline | now | ratio | |" + (" against, same run | ratio |" if against else ""),
+             "|---|---|---|---|---|" + ("---|---|" if against else "")]
     for row in rows:
         base = row["baseline_units"]
         shown = "-" if base is None else f"{base:.2f} ({row['baseline_s']:.2f} s)"
         ratio = "-" if row["ratio"] is None else f"{row['ratio']:.2f}"
-        lines.append(f"| {row['case']} | {shown} | {row['units']:.2f} ({row['seconds']:.2f} s) | {ratio} | "
-                     f"{'SLOWER' if row['slower'] else ''} |")
-    return "\n".join(lines) + f"\n(units of machine.py's loop; SLOWER: more than {SLOWER}x the baseline)"
+        line = (f"| {row['case']} | {shown} | {row['units']:.2f} ({row['seconds']:.2f} s) | {ratio} | "
+                f"{'SLOWER' if row['slower'] else ''} |")
+        if against:
+            line += f" {row['against_s']:.2f} s | {row['same_run_ratio']:.2f} |"
+        lines.append(line)
+    return "\n".join(lines) + (f"\n(units of machine.py's loop, timed before and after each case; SLOWER: more "
+                               f"than {SLOWER}x the baseline" + ("; against: the other install, taking turns with "
+                                                                "this one" if against else "") + ")")
 
 
 def main(argv=None) -> int:
@@ -195,6 +218,8 @@ def main(argv=None) -> int:
     parser.add_argument("--quick", action="store_true", help="the cases marked quick (at most 2 minutes)")
     parser.add_argument("--cases", nargs="+", help="these cases only")
     parser.add_argument("--mpe3d", help="the command to time (default: the mpe3d beside this Python)")
+    parser.add_argument("--against", metavar="MPE3D", help="another install's mpe3d, timed in turns with this "
+                        "one: the ratio of the two in the same run, which a machine's drift cannot move")
     parser.add_argument("--record", action="store_true", help=f"write this run as the baseline ({BASELINE.name})")
     parser.add_argument("--code", help="what --record says the baseline was measured on (e.g. a commit)")
     parser.add_argument("--work", type=Path, default=Path.home() / ".cache" / "mpe3d-regression",
@@ -205,11 +230,12 @@ def main(argv=None) -> int:
              and all(p.exists() for p in c.needs)]
     folders = {c.name: inputs(c, args.work) for c in cases}  # before the clock: inputs are not timed
     machine = describe()
-    unit = machine["solo_s"]
     baseline = json.loads(BASELINE.read_text()) if BASELINE.exists() else {"cases": {}}
     rows = []
     for case in cases:
-        seconds = timed(command + case.argv(folders[case.name]), case.repeats)
+        commands = [command] + ([[args.against]] if args.against else [])
+        times, unit = measured(case, folders[case.name], commands)
+        seconds = times[0]
         base = baseline["cases"].get(case.name)
         units = seconds / unit
         ratio = None if base is None else units / base["units"]
@@ -217,7 +243,9 @@ def main(argv=None) -> int:
                "units": round(units, 3), "baseline_units": None if base is None else base["units"],
                "baseline_s": None if base is None else base["seconds"],
                "ratio": None if ratio is None else round(ratio, 3),
-               "slower": ratio is not None and ratio > SLOWER, "unit_s": unit}
+               "slower": ratio is not None and ratio > SLOWER, "unit_s": round(unit, 4)}
+        if args.against:
+            row.update(against_s=round(times[1], 3), same_run_ratio=round(seconds / times[1], 3))
         print(json.dumps(row), flush=True)
         rows.append(row)
     print(table(rows), file=sys.stderr)

@@ -56,7 +56,7 @@ def _readmitted(fit, tracks, dropped, threshold, lm: LMOptions, seed: int = 0):
         return fit, dropped, False
     # the rounds solve loosely (a real set of 11 photos and 50,000 observations:
     # 4 rounds to the end took 38 s), the last one to the end
-    loose = lm.loose()
+    loose = lm.round()
     changed = False
     for _ in range(_READMISSION_ROUNDS):
         X, cameras = fit[:2]
@@ -142,7 +142,7 @@ def without_outliers(fit, tracks, dropped, threshold, lm: LMOptions, finish: boo
         if not bad.any():
             break
         dropped = dropped | bad
-        fit = adjust(X, cameras, tracks.subset(informative(tracks, ~dropped)), lm.loose())
+        fit = adjust(X, cameras, tracks.subset(informative(tracks, ~dropped)), lm.round())
     if finish and (dropped != before).any():  # the rounds solve loosely: the last one to the end
         fit = adjust(*fit[:2], tracks.subset(informative(tracks, ~dropped)), lm)
     return fit, dropped
