@@ -13,8 +13,6 @@ import warnings
 from typing import Iterator
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from mpe3d.errors import MpeError
 from mpe3d.solvers.base import Observations
@@ -73,6 +71,9 @@ def _ids(values: np.ndarray, limit: int = 10) -> str:
 def view_groups(shared: np.ndarray, need: int) -> tuple[int, np.ndarray]:
     """The groups of views tied together by chains of pairs sharing ``need``
     points or more (``shared``: K x K counts): their number and each view's label."""
+    from scipy.sparse import csr_matrix  # here: scipy.sparse and csgraph cost 0.23 s of a process's imports
+    from scipy.sparse.csgraph import connected_components
+
     return connected_components(csr_matrix(shared >= need), directed=False)
 
 

@@ -33,7 +33,6 @@ Choices the paper leaves open, and what we do:
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.distance import cdist
 
 from mpe3d.solvers.base import Choice, Interval, Observations, Reconstruction, register_solver
 from mpe3d.solvers.starts import fit_projections, mds_embedding
@@ -94,6 +93,8 @@ def procrustes_restarts(P_fit: np.ndarray, P: np.ndarray, starts: np.ndarray,
 
 def _best_scale(stress: Stress, X: np.ndarray, P: np.ndarray) -> float:
     """argmin_s S(sX, P) in closed form: s = sum D e / sum e^2 (rows sampled past 2048)."""
+    from scipy.spatial.distance import cdist  # here: importing scipy.spatial costs 0.18 s a process
+
     num = den = 0.0
     for k, ids in enumerate(stress.ids):
         Y = X[ids] @ P[k].T

@@ -13,10 +13,11 @@ kernel is neither registered nor compiled by a registered one.
 from __future__ import annotations
 
 import functools
+import threading
 from dataclasses import dataclass
 from typing import Callable
 
-__all__ = ["WarmUp", "registered", "warm", "warm_up", "warmed"]
+__all__ = ["WarmUp", "registered", "warm", "warm_in_background", "warm_up", "warmed"]
 
 
 @dataclass(frozen=True)
@@ -32,6 +33,7 @@ class WarmUp:
 
 _REGISTRY: dict[str, WarmUp] = {}
 _DONE: set[str] = set()
+_LOCK = threading.Lock()  # a warm() in the main thread waits for one in the background
 
 
 def warm_up(cost_s: float, call: Callable, *, loss: str | None = None, name: str | None = None):
@@ -75,10 +77,30 @@ def warm(loss: str = "l2", *, part: int = 0, parts: int = 1, only: tuple[str, ..
         for step in _share(part, parts):
             step.call()
         return
-    for step in list(_REGISTRY.values()):
-        if step.name not in _DONE and step.loss in (None, loss) and (only is None or step.name.startswith(only)):
-            step.call()
-            _DONE.add(step.name)
+    with _LOCK:
+        for step in list(_REGISTRY.values()):
+            if step.name not in _DONE and step.loss in (None, loss) and (only is None or step.name.startswith(only)):
+                step.call()
+                _DONE.add(step.name)
+
+
+def warm_in_background(loss: str = "l2", *, only: tuple[str, ...] | None = None) -> threading.Thread:
+    """:func:`warm` in a thread of its own, started now: numba's first load
+    from its cache (0.2-0.3 s a process) overlaps a long step that releases
+    the GIL, such as COLMAP's feature extraction. A later :func:`warm` waits
+    for it; a warm-up that failed here is tried again there, so its error is
+    raised in the caller's thread. Not a daemon: a process ending early waits
+    for it rather than stopping numba mid-load."""
+    thread = threading.Thread(target=_quietly, args=(loss, only), name="mpe3d-warm")
+    thread.start()
+    return thread
+
+
+def _quietly(loss: str, only: tuple[str, ...] | None) -> None:
+    try:
+        warm(loss, only=only)
+    except Exception:  # noqa: BLE001  (warm() in the solve's thread raises it again, with its traceback)
+        pass
 
 
 def _share(part: int, parts: int) -> list[WarmUp]:

@@ -295,6 +295,18 @@ def content_digest(path: str | Path) -> str:
     return _DIGESTS[stamp]
 
 
+def is_photo_folder(path: str | Path) -> bool:
+    """Whether ``path`` is a folder that :func:`read_views` reads as photos
+    (not a COLMAP model, no ``.npz`` views beside them)."""
+    path = Path(path)
+    if not path.is_dir():
+        return False
+    from mpe3d.harness.userdata import photos
+    from mpe3d.harness.userdata.colmap_model import looks_like_model
+
+    return not looks_like_model(path) and not any(path.glob("*.npz")) and bool(photos.photo_names(path))
+
+
 def read_views(path: str | Path, matches: str = "raw") -> list[dict]:
     """The views of an input file as dicts ``{name, ids, xy | dist}``, not yet checked;
     a folder of photos or a COLMAP database gives its tracks of ``matches``."""
@@ -305,7 +317,7 @@ def read_views(path: str | Path, matches: str = "raw") -> list[dict]:
 
         if looks_like_model(path):
             return read_model(path)
-        if not any(path.glob("*.npz")) and photos.photo_names(path):
+        if is_photo_folder(path):
             return photos.read_photos(path, matches)
         return _read_folder(path)
     if not path.exists():

@@ -24,7 +24,7 @@ import numpy as np
 
 from mpe3d import solvers
 from mpe3d.errors import MpeError
-from mpe3d.harness.userdata.formats import read_projections, read_views
+from mpe3d.harness.userdata.formats import is_photo_folder, read_projections, read_views
 from mpe3d.harness.userdata.observations import drop_missing, observations_from
 from mpe3d.harness.userdata.results import Result, reprojection_result, stress_result
 from mpe3d.options import (
@@ -106,6 +106,8 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
     _check_random_state(random_state)
     source = str(views) if isinstance(views, (str, Path)) else "views"
     if isinstance(views, (str, Path)):
+        if is_photo_folder(views) and (solver is None or solver in REPROJECTION_SOLVERS) and objective != "stress":
+            _warm_during_extraction()
         views = read_views(views, matches)
     projections_source = "projections"
     if isinstance(projections, (str, Path)):
@@ -223,6 +225,14 @@ def _file_start(views, obs, source, start, objective, camera, projections, princ
                              np.array([c["focal"] for c in cams]),
                              np.stack([c["distortion"] for c in cams]))
     return X, cameras
+
+
+def _warm_during_extraction() -> None:
+    """A folder of photos: bundle adjustment's kernels load while COLMAP
+    extracts features (its C++ lets go of the GIL), not after."""
+    from mpe3d.solvers import warmup
+
+    warmup.warm_in_background("l2", only=bundle.KERNELS)
 
 
 def solve_problem(problem: Problem) -> Result:

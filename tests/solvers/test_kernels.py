@@ -400,6 +400,44 @@ def test_a_solve_warms_only_its_loss(monkeypatch):
     assert warmup.warmed("huber") and not warmup.warmed("soft_l1")
 
 
+
+def test_a_warm_in_the_background_is_waited_for_and_its_failure_raised_again(monkeypatch):
+    """A warm() in the solve's thread waits for one started in the background
+    (each warm-up runs once); a warm-up that failed there raises in the
+    caller's thread when tried again."""
+    import dataclasses
+    import threading
+
+    calls, gate = [], threading.Event()
+
+    def slow(name):
+        gate.wait(5)
+        calls.append(name)
+
+    everything = {name: dataclasses.replace(step, call=lambda name=name: slow(name))
+                  for name, step in warmup.registered().items()}
+    monkeypatch.setattr(warmup, "_REGISTRY", everything)
+    monkeypatch.setattr(warmup, "_DONE", set())
+    thread = warmup.warm_in_background("l2")
+    waiter = threading.Thread(target=warmup.warm, args=("l2",))
+    waiter.start()
+    gate.set()
+    thread.join(10)
+    waiter.join(10)
+    assert sorted(calls) == sorted(n for n, w in everything.items() if w.loss in (None, "l2"))
+
+    def broken():
+        raise RuntimeError("no cache")
+
+    first = next(n for n, w in everything.items() if w.loss is None)
+    monkeypatch.setattr(warmup, "_REGISTRY", {first: dataclasses.replace(everything[first], call=broken)})
+    monkeypatch.setattr(warmup, "_DONE", set())
+    warmup.warm_in_background("l2").join(10)
+    assert not warmup.warmed("l2")
+    with pytest.raises(RuntimeError, match="no cache"):
+        warmup.warm("l2")
+
+
 KERNEL_MODULES = (kernels, point_kernels, sfm_kernels, epipolar_kernels)
 
 
