@@ -248,7 +248,7 @@ def _lens(state: BundleState, fit, tracks, dropped, camera, rms_by_camera):
     if radial is None:
         return fit, dropped, camera
     rms_by_camera["radial"] = float(np.sqrt(np.mean(residual_lengths(*radial[:2], tracks, kept) ** 2)))
-    fit, dropped = _wrong_matches(state, radial, tracks, dropped, True)
+    fit, dropped = _wrong_matches(state, radial, tracks, dropped, False)  # fitted loosely
     return fit, dropped, "radial"
 
 
