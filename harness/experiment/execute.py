@@ -18,6 +18,7 @@ from threadpoolctl import ThreadpoolController
 from mpe3d import plugins
 from mpe3d.errors import MpeError
 from mpe3d.harness.experiment.config import PIPELINE_NAMES, RunConfig
+from mpe3d.harness.experiment.datasets import dataset_of
 from mpe3d.harness.experiment.limits import check_run_memory
 from mpe3d.harness.experiment.result import Pipeline, RunResult
 from mpe3d.harness.scene.observe import seed_streams
@@ -31,6 +32,27 @@ from mpe3d.solvers import threads
 # parallelism from running several runs at once, so our own solver passes
 # (whose bits do not depend on their thread count) take one thread too.
 BLAS_THREADS = 1
+
+
+# The keys each pipeline reads (a name ending in "." covers its dotted
+# family): what a run logs as its MLflow params, so that a reader comparing
+# runs sees the keys that shaped them. Its identity (config.hash) and its
+# record keep every key.
+PIPELINE_KEYS = {
+    "points": ("pipeline", "seed", "shape", "points", "views", "angle_range", "view_layout",
+               "visibility.", "noise.", "projections", "observe", "init", "align", "solver."),
+    "colmap": ("pipeline", "seed", "shape", "points", "images."),
+    "tracks": ("pipeline", "seed", "tracks.", "solver."),
+}
+
+
+def shaping_params(config: RunConfig) -> dict[str, Any]:
+    """The keys of ``config`` its pipeline reads (:data:`PIPELINE_KEYS`), those
+    left at None aside."""
+    reads = PIPELINE_KEYS[config["pipeline"]]
+    families = tuple(key for key in reads if key.endswith("."))
+    return {key: value for key, value in config.flat().items()
+            if value is not None and (key in reads or key.startswith(families))}
 
 
 def pipeline(name: str) -> Pipeline:
@@ -66,7 +88,8 @@ def expected_work(config: RunConfig) -> float:
 
 def run(config: RunConfig) -> RunResult:
     """Run ``config``; the solver only ever sees the observations."""
-    check_run_memory(config)  # before sampling: refuse what cannot fit, in one line
+    if "points" in PIPELINE_KEYS[config["pipeline"]]:  # a tracks run samples no points
+        check_run_memory(config)  # before sampling: refuse what cannot fit, in one line
     with _blas_limit(), threads.limit(BLAS_THREADS):
         return _run(config)
 
@@ -98,7 +121,9 @@ def code_of(config: RunConfig) -> str:
 
 def _made_by(config: RunConfig) -> dict[str, Any]:
     """Which run a record is of, and the code that computed it."""
-    return {"config_hash": config.hash(), "params": config.flat(), "code": code_of(config)}
+    return {"config_hash": config.hash(), "params": shaping_params(config),
+            "config": {key: str(value) for key, value in config.flat().items()},
+            "dataset": dataset_of(config), "code": code_of(config)}
 
 
 def failed_record(config: RunConfig, error: str, trace: str = "", start: float | None = None,

@@ -83,6 +83,7 @@ def plan_sweeps(sweeps: Iterable[Sweep], tracker, rerun_failed: bool = False,
     for sweep in sweeps:
         stop.check()
         experiment_id = tracker.experiment_id(sweep.name)
+        tracker.describe(experiment_id, sweep.description)
         plan = Plan(sweep=sweep, experiment_id=experiment_id, todo=[])
         if experiment_id not in planned:
             plan.zombies = tracker.close_zombies(experiment_id)

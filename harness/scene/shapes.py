@@ -192,6 +192,14 @@ def _mesh_path(spec: str) -> Path | None:
                    "or a mesh file path)", key="shape", hint=suggest(spec, shape_names()))
 
 
+def mesh_file(spec: str) -> Path | None:
+    """The mesh file a ``shape`` value reads (None: a procedural solid or a
+    plug-in's data set, made by code)."""
+    if _dataset(spec) is not None:
+        return None
+    return _mesh_path(spec)
+
+
 def check_shape(spec: str) -> None:
     """Fail early, without loading anything, if ``spec`` names no shape or no file."""
     if _dataset(spec) is not None:

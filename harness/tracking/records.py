@@ -19,7 +19,7 @@ class RunRecord:
     """
 
     config_hash: str
-    params: dict[str, Any]  # the flat config, as logged
+    params: dict[str, Any]  # the keys that shaped the run: its MLflow params
     status: str  # FINISHED or FAILED, as MLflow names them
     start_ms: int
     end_ms: int
@@ -32,6 +32,8 @@ class RunRecord:
     picture: np.ndarray | None = None  # comparison.png's bytes (uint8), for the artifacts
     error: str = ""
     traceback: str = ""
+    config: dict[str, str] = field(default_factory=dict)  # every key, as text (the reports read it)
+    dataset: dict[str, str] = field(default_factory=dict)  # the data it read: an MLflow dataset's fields
 
 
 ARRAY_FIELDS = ("stress_history", "truth", "reconstruction", "picture")  # kept out of JSON

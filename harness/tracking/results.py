@@ -6,6 +6,7 @@ and an experiment's runs as a DataFrame. A mix-in of
 from __future__ import annotations
 
 import contextlib
+import json
 import tempfile
 from pathlib import Path
 
@@ -40,6 +41,18 @@ def chart_steps(n: int, most: int = CHART_STEPS) -> np.ndarray:
     return np.union1d(steps, [0, n - 1])
 
 
+CONFIG_TAG = "mpe3d.config"  # a run's every key, as JSON text: its params are those that shaped it
+DATASET_CONTEXT = "input"  # a dataset input's mlflow.data.context: what the method reconstructs from
+
+
+def dataset_input(fields: dict[str, str]):
+    """A run's data set (the fields of :func:`mpe3d.harness.experiment.datasets.dataset_of`)
+    as an MLflow dataset input."""
+    from mlflow.entities import Dataset, DatasetInput, InputTag
+
+    return DatasetInput(Dataset(**fields), tags=[InputTag("mlflow.data.context", DATASET_CONTEXT)])
+
+
 class Results:
     """Logging and reading results. Mixed into the tracker, whose ``client``,
     ``uri``, ``code``, ``runs_of``, ``artifact_uris``, ``child_tags`` and
@@ -64,10 +77,14 @@ class Results:
             metrics += [Metric("stress_history", float(history[i]), t, int(i))
                         for i in chart_steps(len(history))]
         params = [Param(k, str(v)) for k, v in record.params.items()]
+        if record.config:
+            tags[CONFIG_TAG] = json.dumps(record.config, sort_keys=True)
         with store_errors(self.uri, "log a run"):
             try:
                 self.client.log_batch(run_id, metrics=metrics, params=params,
                                       tags=[RunTag(k, v) for k, v in tags.items()])
+                if record.dataset:
+                    self.client.log_inputs(run_id, datasets=[dataset_input(record.dataset)])
                 self.log_artifacts(run_id, record, artifacts)
             except BaseException as exc:  # interrupted half-way: never leave a run RUNNING,
                 if reason(exc) not in UNREACHABLE:  # unless the store is gone: another try
@@ -165,7 +182,8 @@ class Results:
                        "start_time": pd.Timestamp(run.info.start_time, unit="ms"),
                        "error": run.data.tags.get(ERROR_TAG, ""),
                        "code": run.data.tags.get(CODE_TAG, UNRECORDED)}
-                row.update(run.data.params)
+                row.update(run.data.params)  # a run logged before CONFIG_TAG: every key a param
+                row.update(json.loads(run.data.tags.get(CONFIG_TAG, "{}")))
                 row.update({k: v for k, v in run.data.metrics.items() if k != "stress_history"})
                 rows.append(row)
         frame = pd.DataFrame(rows)

@@ -42,6 +42,8 @@ from mpe3d.harness.tracking.identity import code_identity
 from mpe3d.harness.tracking.results import CHART_STEPS, Results, chart_steps
 from mpe3d.harness.tracking.sqlite import open_sqlite, read_only, read_only_uri, store_template
 
+NOTE_TAG = "mlflow.note.content"  # what MLflow's UI shows as an experiment's (or run's) description
+
 __all__ = ["CHART_STEPS", "CLAIM_TAG", "CODE_TAG", "DEFAULT_URI", "ERROR_TAG", "HASH_TAG", "HEARTBEAT_TAG",
            "OWNER_TAG", "PARENT_TAG", "STATUS_RANK", "UNRECORDED", "Tracked", "Tracker", "artifact_root",
            "chart_steps", "claim_key", "resolve_uri", "serving_uri", "store_template"]
@@ -108,6 +110,16 @@ class Tracker(Claims, Results):
                 if found is None:
                     raise
                 return found.experiment_id
+
+    def describe(self, experiment_id: str, description: str) -> None:
+        """Show ``description`` (a sweep's) on the experiment's page in the UI
+        (its ``mlflow.note.content`` tag), when it says something new."""
+        if not description:
+            return
+        with store_errors(self.uri, "describe an experiment"):
+            found = self.client.get_experiment(experiment_id)
+            if found.tags.get(NOTE_TAG) != description:
+                self.client.set_experiment_tag(experiment_id, NOTE_TAG, description)
 
     def experiment_names(self) -> list[str]:
         with store_errors(self.uri, "list experiments"):

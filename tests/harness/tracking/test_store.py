@@ -17,8 +17,10 @@ import pytest
 from mlflow.tracking import MlflowClient
 
 from mpe3d.cli import main
+from mpe3d.harness.experiment.execute import shaping_params
 from mpe3d.harness.experiment.result import METRIC_KEYS
 from mpe3d.harness.experiment.sweep import load_sweep
+from mpe3d.harness.tracking.results import CONFIG_TAG
 from mpe3d.harness.tracking.store import CHART_STEPS, chart_steps
 from tests.helpers import free_port, run_cli, stop, wait_for
 
@@ -77,10 +79,21 @@ def test_sweep_logs_every_run_finished(tracked):
     assert parent.data.metrics["runs_finished"] == 8
     expected = {c.hash(): c for c in load_sweep(path).runs}
     assert {r.data.tags["mpe3d.config_hash"] for r in kids} == set(expected)
+    # the sweep's description on the experiment's page; one data set for all its runs
+    assert client.get_experiment_by_name("tiny").tags["mlflow.note.content"] == "an 8-run test sweep"
+    assert len({r.inputs.dataset_inputs[0].dataset.digest for r in kids}) == 1
     for run in kids:
         config = expected[run.data.tags["mpe3d.config_hash"]]
         assert run.data.tags["mlflow.parentRunId"] == parent.info.run_id
-        assert run.data.params == {k: str(v) for k, v in config.flat().items()}
+        # the keys that shaped a points run are its params, none left at None;
+        # every key is in its config tag, which the reports read
+        assert run.data.params == {k: str(v) for k, v in shaping_params(config).items()}
+        assert not any(k.startswith(("tracks.", "images.")) for k in run.data.params)
+        assert "visibility.count" not in run.data.params  # None
+        assert json.loads(run.data.tags[CONFIG_TAG]) == {k: str(v) for k, v in config.flat().items()}
+        (used,) = run.inputs.dataset_inputs  # the data it read, as MLflow names a data set
+        assert used.dataset.name == "torus" and used.dataset.source == "mpe3d:torus"
+        assert json.loads(used.dataset.profile) == {"points": 64, "sampling": "area-uniform"}
         assert set(METRIC_KEYS) <= set(run.data.metrics)
         assert 0 <= run.data.metrics["roa"] and run.data.metrics["iterations"] <= 15
         history = client.get_metric_history(run.info.run_id, "stress_history")
@@ -203,7 +216,8 @@ def test_force_reruns_everything(tmp_path, capsys):
 @pytest.mark.slow  # a real sweep or server: the full suite runs it
 def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
     path = tmp_path / "two.yaml"
-    path.write_text("name: two\nbase: {shape: torus, points: 64, solver: baseline}\n")
+    path.write_text("name: two\ndescription: a torus seen twice\n"
+                    "base: {shape: torus, points: 64, solver: baseline}\n")
     assert cli(capsys, "sweep", path, "--jobs", "1", "--tracking-uri",
                f"sqlite:///{tmp_path}/mlflow.db")[0] == 0
     port = free_port()
@@ -216,7 +230,20 @@ def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
         base = f"http://127.0.0.1:{port}"
         with urllib.request.urlopen(f"{base}/api/2.0/mlflow/experiments/get-by-name?"
                                     "experiment_name=two", timeout=10) as answer:
-            assert b'"two"' in answer.read()
+            experiment = json.loads(answer.read())["experiment"]
+        # what the UI reads: the experiment's description, each run's data set and params
+        assert {"key": "mlflow.note.content", "value": "a torus seen twice"} in experiment["tags"]
+        query = json.dumps({"experiment_ids": [experiment["experiment_id"]],
+                            "filter": "tags.`mpe3d.config_hash` != ''"}).encode()
+        request = urllib.request.Request(f"{base}/api/2.0/mlflow/runs/search", data=query,
+                                         headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(request, timeout=10) as answer:
+            (run,) = json.loads(answer.read())["runs"]
+        (used,) = run["inputs"]["dataset_inputs"]
+        assert used["dataset"]["name"] == "torus" and used["dataset"]["source"] == "mpe3d:torus"
+        params = {p["key"] for p in run["data"]["params"]}
+        assert {"shape", "points", "views", "solver.name"} <= params
+        assert not any(k.startswith(("tracks.", "images.")) for k in params)
         # The picture of a child run, as the UI fetches it.
         kids, parents = children(MlflowClient(f"sqlite:///{tmp_path}/mlflow.db"), "two")
         with urllib.request.urlopen(f"{base}/get-artifact?path=comparison.png&"
