@@ -20,8 +20,6 @@ import json
 
 from mpe3d.errors import MpeError
 from mpe3d.harness.experiment.config import RunConfig, track_file
-from mpe3d.harness.scene import shapes
-from mpe3d.harness.userdata.formats import content_digest
 
 DIGEST_CHARS = 16  # MLflow keeps a data set's digest in at most 36 characters
 
@@ -39,12 +37,19 @@ def dataset_of(config: RunConfig) -> dict[str, str]:
 
 
 def _tracks(config: RunConfig) -> dict[str, str]:
+    from mpe3d.harness.userdata.formats import content_digest
+
     path = track_file(config.values, "tracks.path")
     return {"name": path.name, "digest": _short(content_digest(path)), "source_type": "local",
             "source": str(path.resolve()), "profile": json.dumps({"kind": "keypoint tracks"})}
 
 
 def _shape(config: RunConfig) -> dict[str, str]:
+    # here, not at the top: the parent process, which imports this module to
+    # record a run whose worker died, need not load trimesh (0.5 s) for it
+    from mpe3d.harness.scene import shapes
+    from mpe3d.harness.userdata.formats import content_digest
+
     spec = config["shape"]
     mesh = shapes.mesh_file(spec)
     source_type, source, data = ("code", f"mpe3d:{spec}", f"shape:{spec}") if mesh is None \

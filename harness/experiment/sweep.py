@@ -3,7 +3,7 @@
 A sweep file has these top-level keys (see ``sweeps/README.md``)::
 
     name: views-vs-accuracy        # the MLflow experiment (default: the file's stem)
-    description: free text
+    description: free text         # the experiment's description in the MLflow UI
     base: {points: 512, solver: {name: sgd, max_iter: 300}}   # keys of `mpe3d run`
     grid: {views: [2, 3, 4], projections: [fixed, variable]}  # Cartesian product
     zip: {visibility.k: [1, 2, 3], views: [2, 3, 4]}          # vary together
