@@ -18,7 +18,6 @@ from __future__ import annotations
 import hashlib
 import json
 
-from mpe3d.errors import MpeError
 from mpe3d.harness.experiment.config import RunConfig, track_file
 
 DIGEST_CHARS = 16  # MLflow keeps a data set's digest in at most 36 characters
@@ -27,12 +26,13 @@ DIGEST_CHARS = 16  # MLflow keeps a data set's digest in at most 36 characters
 def dataset_of(config: RunConfig) -> dict[str, str]:
     """The fields of ``config``'s MLflow dataset (``name``, ``digest``,
     ``source_type``, ``source``, ``profile``), or ``{}`` when its data cannot
-    be read (the run itself then fails and says why)."""
+    be read (the run itself then fails and says why): a name for the UI
+    never costs a run its record."""
     try:
         if config["pipeline"] == "tracks":
             return _tracks(config)
         return _shape(config)
-    except (MpeError, OSError):
+    except Exception:  # noqa: BLE001  (a plug-in's data set may raise anything)
         return {}
 
 
