@@ -61,6 +61,9 @@ def test_a_pipeline_reads_only_the_keys_it_declares(tmp_path, pipeline):
     logged = execute.shaping_params(config)
     assert all(value is not None for value in logged.values())
     assert {key for key in read if config.flat().get(key) is not None} <= set(logged)
+    others = {"points": ("tracks.", "images."), "tracks": ("visibility.", "noise.", "images.", "views"),
+              "colmap": ("tracks.", "visibility.", "noise.", "solver.", "views")}[pipeline]
+    assert not [key for key in logged if key.startswith(others)]  # another pipeline's keys
 
 
 def test_every_declared_key_is_a_key():
