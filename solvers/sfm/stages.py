@@ -25,7 +25,7 @@ paths ran and what decided them:
 
 What comes after (wrong matches peeled, the final adjustment) is in
 :mod:`.bundle` and :mod:`.outliers`. The thresholds, and the measurements
-behind them, are in docs/methods/colmap.md ("How bundle adjustment decides").
+behind them, are in docs/methods/stages.md ("How bundle adjustment decides what runs").
 """
 
 from __future__ import annotations
