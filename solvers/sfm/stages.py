@@ -178,13 +178,12 @@ def suspects(state: BundleState) -> None:
     for) and the keypoints' two noise levels."""
     start = time.perf_counter()
     tracks, options = state.tracks, state.options
-    size = image_size(tracks)
+    floor = NOISE_FLOOR * image_size(tracks)
     tests = two_view_tests(tracks.view, tracks.point, tracks.z, tracks.n_views, tracks.n_points,
-                           floor=1e-5 * size, seed=options.random_state,
+                           floor=floor, seed=options.random_state,
                            partners=PARTNERS if options.robust else NOISE_PARTNERS)
     if options.robust:
         state.flagged = tests.flagged.copy()
-    floor = NOISE_FLOOR * size
     state.noise = max(tests.noise, floor) if np.isfinite(tests.noise) else float("nan")
     state.affine = max(tests.affine, floor) if np.isfinite(tests.affine) else float("nan")
     found = f"{int(state.flagged.sum())} observations suspected; " if options.robust else ""
