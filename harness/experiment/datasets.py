@@ -17,10 +17,14 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
+from pathlib import Path
 
 from mpe3d.harness.experiment.config import RunConfig, track_file
 
 DIGEST_CHARS = 16  # MLflow keeps a data set's digest in at most 36 characters
+NAME_CHARS = 500  # and its name in at most this many
+_LOG = logging.getLogger(__name__)
 
 
 def dataset_of(config: RunConfig) -> dict[str, str]:
@@ -33,6 +37,7 @@ def dataset_of(config: RunConfig) -> dict[str, str]:
             return _tracks(config)
         return _shape(config)
     except Exception:  # noqa: BLE001  (a plug-in's data set may raise anything)
+        _LOG.warning("no MLflow data set for the run of %s", config["shape"], exc_info=True)
         return {}
 
 
@@ -40,8 +45,9 @@ def _tracks(config: RunConfig) -> dict[str, str]:
     from mpe3d.harness.userdata.formats import content_digest
 
     path = track_file(config.values, "tracks.path")
-    return {"name": path.name, "digest": _short(content_digest(path)), "source_type": "local",
-            "source": str(path.resolve()), "profile": json.dumps({"kind": "keypoint tracks"})}
+    # named as the sweep names it (realdata's house and dino are both keypoints.csv)
+    return {"name": str(config["tracks.path"])[-NAME_CHARS:], "digest": _short(content_digest(path)),
+            "source_type": "local", "source": _uri(path), "profile": json.dumps({"kind": "keypoint tracks"})}
 
 
 def _shape(config: RunConfig) -> dict[str, str]:
@@ -52,17 +58,23 @@ def _shape(config: RunConfig) -> dict[str, str]:
 
     spec = config["shape"]
     mesh = shapes.mesh_file(spec)
-    source_type, source, data = ("code", f"mpe3d:{spec}", f"shape:{spec}") if mesh is None \
-        else ("local", str(mesh.resolve()), content_digest(mesh))
+    # MLflow's own source formats (its CodeDatasetSource's, LocalArtifactDatasetSource's JSON)
+    source_type, source, data = ("code", json.dumps({"tags": {"mpe3d.shape": spec}}), f"shape:{spec}") \
+        if mesh is None else ("local", _uri(mesh), content_digest(mesh))
+    shown = spec if mesh is None or ":" in spec or spec in shapes.shape_names() else Path(spec).name  # a file: its name
     if config["pipeline"] == "colmap":
         sampling = {"photos": config["images.count"], "size_px": config["images.size"]}
-        name = f"{spec} photos"
+        name = f"{shown} photos"
     else:
         sampling = {"points": config["points"], "sampling": "area-uniform"}
-        name = spec
+        name = shown
     digest = _short(json.dumps({"data": data, **sampling}, sort_keys=True))
-    return {"name": name, "digest": digest, "source_type": source_type, "source": source,
+    return {"name": name[-NAME_CHARS:], "digest": digest, "source_type": source_type, "source": source,
             "profile": json.dumps(sampling, sort_keys=True)}
+
+
+def _uri(path: Path) -> str:
+    return json.dumps({"uri": str(path.resolve())})
 
 
 def _short(text: str) -> str:

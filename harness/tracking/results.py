@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import tempfile
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -42,6 +43,28 @@ def chart_steps(n: int, most: int = CHART_STEPS) -> np.ndarray:
 
 
 CONFIG_TAG = "mpe3d.config"  # a run's every key, as JSON text: its params are those that shaped it
+TAG_CHARS = 8000  # MLflow cuts a tag's value here (a warning, no error): a longer config goes in parts
+
+
+def config_tags(config: dict[str, str]) -> dict[str, str]:
+    """A run's config as tags: ``mpe3d.config``, then ``mpe3d.config.1``, ``.2``...
+    for what does not fit in one tag."""
+    text = json.dumps(config, sort_keys=True)
+    parts = [text[i:i + TAG_CHARS] for i in range(0, len(text), TAG_CHARS)]
+    return {CONFIG_TAG if i == 0 else f"{CONFIG_TAG}.{i}": part for i, part in enumerate(parts)}
+
+
+def config_of(tags: dict[str, str]) -> dict[str, str]:
+    """The config :func:`config_tags` wrote ({} for a run logged before it,
+    or one whose tags were cut: its params then stand in)."""
+    parts, i = [tags.get(CONFIG_TAG, "")], 1
+    while f"{CONFIG_TAG}.{i}" in tags:
+        parts.append(tags[f"{CONFIG_TAG}.{i}"])
+        i += 1
+    try:
+        return json.loads("".join(parts)) if parts[0] else {}
+    except json.JSONDecodeError:
+        return {}
 DATASET_CONTEXT = "input"  # a dataset input's mlflow.data.context: what the method reconstructs from
 
 
@@ -78,13 +101,13 @@ class Results:
                         for i in chart_steps(len(history))]
         params = [Param(k, str(v)) for k, v in record.params.items()]
         if record.config:
-            tags[CONFIG_TAG] = json.dumps(record.config, sort_keys=True)
+            tags.update(config_tags(record.config))
         with store_errors(self.uri, "log a run"):
             try:
                 self.client.log_batch(run_id, metrics=metrics, params=params,
                                       tags=[RunTag(k, v) for k, v in tags.items()])
                 if record.dataset:
-                    self.client.log_inputs(run_id, datasets=[dataset_input(record.dataset)])
+                    self._log_dataset(run_id, record.dataset)
                 self.log_artifacts(run_id, record, artifacts)
             except BaseException as exc:  # interrupted half-way: never leave a run RUNNING,
                 if reason(exc) not in UNREACHABLE:  # unless the store is gone: another try
@@ -92,6 +115,20 @@ class Results:
                         self.client.set_terminated(run_id, status="KILLED")
                 raise
             self.client.set_terminated(run_id, status=record.status, end_time=record.end_ms)
+
+    def _log_dataset(self, run_id: str, fields: dict[str, str]) -> None:
+        """The run's data set, for the UI's Datasets column: a store that
+        refuses it (a server older than MLflow 2.4) costs the run nothing but
+        that column; a store gone is raised as every other write's."""
+        from mlflow.exceptions import MlflowException
+
+        try:
+            self.client.log_inputs(run_id, datasets=[dataset_input(fields)])
+        except MlflowException as exc:
+            if reason(exc) in UNREACHABLE:
+                raise
+            warnings.warn(f"run {run_id}: its data set not logged ({str(exc).splitlines()[0][:200]})",
+                          stacklevel=2)
 
     def replay(self, entry) -> bool:
         """Log a journaled result left by a dead sweep; False if the store had it."""
@@ -183,7 +220,7 @@ class Results:
                        "error": run.data.tags.get(ERROR_TAG, ""),
                        "code": run.data.tags.get(CODE_TAG, UNRECORDED)}
                 row.update(run.data.params)  # a run logged before CONFIG_TAG: every key a param
-                row.update(json.loads(run.data.tags.get(CONFIG_TAG, "{}")))
+                row.update(config_of(run.data.tags))
                 row.update({k: v for k, v in run.data.metrics.items() if k != "stress_history"})
                 rows.append(row)
         frame = pd.DataFrame(rows)

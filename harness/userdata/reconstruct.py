@@ -106,7 +106,7 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
     _check_random_state(random_state)
     source = str(views) if isinstance(views, (str, Path)) else "views"
     if isinstance(views, (str, Path)):
-        if is_photo_folder(views) and (solver is None or solver in REPROJECTION_SOLVERS) and objective != "stress":
+        if is_photo_folder(views) and solver in (None, "bundle") and objective != "stress":
             _warm_during_extraction()
         views = read_views(views, matches)
     projections_source = "projections"

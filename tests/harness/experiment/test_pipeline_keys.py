@@ -64,6 +64,8 @@ def test_a_pipeline_reads_only_the_keys_it_declares(tmp_path, pipeline):
     others = {"points": ("tracks.", "images."), "tracks": ("visibility.", "noise.", "images.", "views"),
               "colmap": ("tracks.", "visibility.", "noise.", "solver.", "views")}[pipeline]
     assert not [key for key in logged if key.startswith(others)]  # another pipeline's keys
+    if pipeline == "tracks":  # its solvers take no option: solver.name alone
+        assert [key for key in logged if key.startswith("solver.")] == ["solver.name"]
 
 
 def test_every_declared_key_is_a_key():
@@ -71,3 +73,32 @@ def test_every_declared_key_is_a_key():
     for reads in execute.PIPELINE_KEYS.values():
         for name in reads:
             assert name in KEYS or any(key.startswith(name) for key in KEYS), name
+
+
+def test_a_runs_data_set_names_its_data_and_mlflow_reads_its_source(tmp_path):
+    """Runs on the same data share a digest, on other data (another sampling,
+    another mesh's bytes, another keypoint file) they do not; a mesh file is
+    named by its file name, a keypoint file as the sweep names it; MLflow
+    reads the source back."""
+    from mlflow.data.dataset_source_registry import get_dataset_source_from_json
+
+    from mpe3d.harness.experiment.datasets import dataset_of
+    from tests.helpers import SHARED
+
+    torus = dataset_of(make_config({"shape": "torus", "points": 64}))
+    assert torus == dataset_of(make_config({"shape": "torus", "points": 64, "views": 7, "seed": 3}))
+    assert torus["digest"] != dataset_of(make_config({"shape": "torus", "points": 128}))["digest"]
+    chair = dataset_of(make_config({"shape": "chair"}))
+    mesh = tmp_path / "my chair.ply"
+    mesh.write_bytes(__import__("mpe3d.harness.scene.shapes", fromlist=["x"]).mesh_file("chair").read_bytes())
+    mine = dataset_of(make_config({"shape": str(mesh)}))
+    assert mine["name"] == "my chair.ply" and mine["digest"] == chair["digest"]  # the same bytes
+    assert dataset_of(make_config({"pipeline": "colmap", "shape": "chair"}))["name"] == "chair photos"
+    house, dino = (dataset_of(make_config({"pipeline": "tracks", "tracks.root": str(SHARED / "realdata"),
+                                           "tracks.path": f"{name}/keypoints.csv"}))
+                   for name in ("house", "dino"))
+    assert house["name"] == "house/keypoints.csv" and house["digest"] != dino["digest"]
+    for fields in (torus, mine, house):
+        source = get_dataset_source_from_json(fields["source"], fields["source_type"])
+        assert source.to_json() == fields["source"]
+    assert dataset_of(make_config({"shape": str(tmp_path / "gone.ply")})) == {}  # the run will say why

@@ -92,7 +92,7 @@ def test_sweep_logs_every_run_finished(tracked):
         assert "visibility.count" not in run.data.params  # None
         assert json.loads(run.data.tags[CONFIG_TAG]) == {k: str(v) for k, v in config.flat().items()}
         (used,) = run.inputs.dataset_inputs  # the data it read, as MLflow names a data set
-        assert used.dataset.name == "torus" and used.dataset.source == "mpe3d:torus"
+        assert used.dataset.name == "torus" and json.loads(used.dataset.source) == {"tags": {"mpe3d.shape": "torus"}}
         assert json.loads(used.dataset.profile) == {"points": 64, "sampling": "area-uniform"}
         assert set(METRIC_KEYS) <= set(run.data.metrics)
         assert 0 <= run.data.metrics["roa"] and run.data.metrics["iterations"] <= 15
@@ -240,7 +240,7 @@ def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
         with urllib.request.urlopen(request, timeout=10) as answer:
             (run,) = json.loads(answer.read())["runs"]
         (used,) = run["inputs"]["dataset_inputs"]
-        assert used["dataset"]["name"] == "torus" and used["dataset"]["source"] == "mpe3d:torus"
+        assert used["dataset"]["name"] == "torus" and json.loads(used["dataset"]["source"]) == {"tags": {"mpe3d.shape": "torus"}}
         params = {p["key"] for p in run["data"]["params"]}
         assert {"shape", "points", "views", "solver.name"} <= params
         assert not any(k.startswith(("tracks.", "images.")) for k in params)
@@ -426,3 +426,17 @@ def test_runs_of_the_papers_full_sweeps_fit_a_120_column_terminal(monkeypatch):
         assert max(map(len, lines)) <= 120, (sweep.name, lines[0])
         assert lines[-1].startswith("FAILED ") and "MpeError: a long reason" in lines[-1]
         assert len(lines) == len(frame) + 2  # the header, a row per run, the failure below
+
+
+def test_a_long_config_is_kept_whole_and_a_cut_one_gives_way_to_the_params():
+    """MLflow cuts a tag at 8,000 characters without an error: a config longer
+    than that goes in parts and reads back whole; a tag cut short (or none, a
+    run logged before the tag) reads as nothing, so the params stand in."""
+    from mpe3d.harness.tracking.results import CONFIG_TAG, TAG_CHARS, config_of, config_tags
+
+    config = {f"solver.option_{i}": "x" * 300 for i in range(60)}
+    tags = config_tags(config)
+    assert len(tags) > 1 and all(len(v) <= TAG_CHARS for v in tags.values())
+    assert config_of(tags) == config
+    assert config_of({CONFIG_TAG: tags[CONFIG_TAG]}) == {}  # its other parts lost
+    assert config_of({}) == {}
