@@ -92,7 +92,8 @@ def test_sweep_logs_every_run_finished(tracked):
         assert "visibility.count" not in run.data.params  # None
         assert json.loads(run.data.tags[CONFIG_TAG]) == {k: str(v) for k, v in config.flat().items()}
         (used,) = run.inputs.dataset_inputs  # the data it read, as MLflow names a data set
-        assert used.dataset.name == "torus" and json.loads(used.dataset.source) == {"tags": {"mpe3d.shape": "torus"}}
+        assert used.dataset.name == "torus"
+        assert json.loads(used.dataset.source) == {"tags": {"mpe3d.shape": "torus"}}
         assert json.loads(used.dataset.profile) == {"points": 64, "sampling": "area-uniform"}
         assert set(METRIC_KEYS) <= set(run.data.metrics)
         assert 0 <= run.data.metrics["roa"] and run.data.metrics["iterations"] <= 15
@@ -240,7 +241,8 @@ def test_ui_serves_the_store_on_localhost(tmp_path, capsys):
         with urllib.request.urlopen(request, timeout=10) as answer:
             (run,) = json.loads(answer.read())["runs"]
         (used,) = run["inputs"]["dataset_inputs"]
-        assert used["dataset"]["name"] == "torus" and json.loads(used["dataset"]["source"]) == {"tags": {"mpe3d.shape": "torus"}}
+        assert used["dataset"]["name"] == "torus"
+        assert json.loads(used["dataset"]["source"]) == {"tags": {"mpe3d.shape": "torus"}}
         params = {p["key"] for p in run["data"]["params"]}
         assert {"shape", "points", "views", "solver.name"} <= params
         assert not any(k.startswith(("tracks.", "images.")) for k in params)
