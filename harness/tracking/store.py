@@ -43,6 +43,7 @@ from mpe3d.harness.tracking.results import CHART_STEPS, Results, chart_steps
 from mpe3d.harness.tracking.sqlite import open_sqlite, read_only, read_only_uri, store_template
 
 NOTE_TAG = "mlflow.note.content"  # what MLflow's UI shows as an experiment's (or run's) description
+NOTE_CHARS = 20000  # the longest experiment tag MLflow takes
 
 __all__ = ["CHART_STEPS", "CLAIM_TAG", "CODE_TAG", "DEFAULT_URI", "ERROR_TAG", "HASH_TAG", "HEARTBEAT_TAG",
            "OWNER_TAG", "PARENT_TAG", "STATUS_RANK", "UNRECORDED", "Tracked", "Tracker", "artifact_root",
@@ -116,6 +117,7 @@ class Tracker(Claims, Results):
         (its ``mlflow.note.content`` tag), when it says something new."""
         if not description:
             return
+        description = description[:NOTE_CHARS]
         with store_errors(self.uri, "describe an experiment"):
             found = self.client.get_experiment(experiment_id)
             if found.tags.get(NOTE_TAG) != description:
