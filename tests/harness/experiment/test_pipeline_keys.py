@@ -83,7 +83,6 @@ def test_a_runs_data_set_names_its_data_and_mlflow_reads_its_source(tmp_path):
     from mlflow.data.dataset_source_registry import get_dataset_source_from_json
 
     from mpe3d.harness.experiment.datasets import dataset_of
-    from tests.helpers import SHARED
 
     torus = dataset_of(make_config({"shape": "torus", "points": 64}))
     assert torus == dataset_of(make_config({"shape": "torus", "points": 64, "views": 7, "seed": 3}))
@@ -94,7 +93,9 @@ def test_a_runs_data_set_names_its_data_and_mlflow_reads_its_source(tmp_path):
     mine = dataset_of(make_config({"shape": str(mesh)}))
     assert mine["name"] == "my chair.ply" and mine["digest"] == chair["digest"]  # the same bytes
     assert dataset_of(make_config({"pipeline": "colmap", "shape": "chair"}))["name"] == "chair photos"
-    house, dino = (dataset_of(make_config({"pipeline": "tracks", "tracks.root": str(SHARED / "realdata"),
+    for seed, name in enumerate(("house", "dino")):  # two data sets, each a keypoints.csv
+        scaled_track_set(tmp_path / name, seed=seed)
+    house, dino = (dataset_of(make_config({"pipeline": "tracks", "tracks.root": str(tmp_path),
                                            "tracks.path": f"{name}/keypoints.csv"}))
                    for name in ("house", "dino"))
     assert house["name"] == "house/keypoints.csv" and house["digest"] != dino["digest"]
