@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mpe3d.errors import MpeError
+from mpe3d.errors import Unregistered
 from mpe3d.options import COLMAP_CAMERAS
 from mpe3d.solvers.sfm.bundle import BundleResult, place_unplaced
 from mpe3d.solvers.sfm.cameras import radial_cameras
@@ -160,7 +160,7 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
         seconds["map_s"] = time.perf_counter() - start
     best = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()), default=None)
     if best is None or best.num_reg_images() < MIN_REGISTERED:
-        raise MpeError("COLMAP registered no two views: its geometric verification or its "
+        raise Unregistered("COLMAP registered no two views: its geometric verification or its "
                        "initial pair found too few inlier matches among the tracks")
     return _result(best, tracks, keypoint, names, camera, c, len(models), seconds)
 

@@ -28,11 +28,16 @@ class MpeError(ValueError):
         return MpeError(f"{self.message} at {where}", key=self.key, hint=self.hint)
 
 
-class StoreError(MpeError):
-    """The tracking store failed or cannot be reached: not the user's input
-    (exit code 3). Results computed meanwhile stay in the local journal."""
+class MachineError(MpeError):
+    """The machine, not the input, is at fault: no space left in a scratch
+    folder, a folder that cannot be written (exit code 3)."""
 
     exit_code = 3
+
+
+class StoreError(MachineError):
+    """The tracking store failed or cannot be reached: not the user's input
+    (exit code 3). Results computed meanwhile stay in the local journal."""
 
 
 class DiskFull(StoreError):
@@ -42,6 +47,15 @@ class DiskFull(StoreError):
     def __init__(self, message: str, path: str):
         super().__init__(message)
         self.path = path
+
+
+class Unregistered(MpeError):
+    """A structure-from-motion method registered fewer than two views.
+
+    The method's own honest outcome on its input, not a failure: a run that
+    ends so is a finished run with no cloud (``registered_views`` 0), where
+    any other error makes the run FAILED, for every method alike.
+    """
 
 
 def first_line(exc: BaseException, limit: int = 300) -> str:
