@@ -3,7 +3,7 @@
     python benchmarks/bundle_scale.py [--cameras 250] [--points 3000] [--noise 0.5] [--seed 0]
 
 The scene a new user would try: ``--cameras`` pinholes on the photo spiral
-(:func:`mpe3d.harness.scene.photos.spiral_cameras`, 400 x 400 pixels) round
+(:func:`mpe3d.harness.scene.rendering.spiral_cameras`, 400 x 400 pixels) round
 ``--points`` points on a sphere of radius 0.4, each point seen by a random
 half of the cameras it faces (so by about 60 of 250), its keypoints with
 ``--noise`` px of Gaussian noise. Solved as ``mpe3d reconstruct --camera
@@ -25,7 +25,7 @@ from machine import describe
 
 from mpe3d import reconstruct
 from mpe3d.harness.scene.metrics import similarity_transform
-from mpe3d.harness.scene.photos import spiral_cameras
+from mpe3d.harness.scene.rendering import spiral_cameras
 
 
 def scene(n_cameras: int, n_points: int, noise: float, seed: int):

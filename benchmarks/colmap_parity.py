@@ -4,7 +4,7 @@
                                        [--seeds 0 1 2] [--threads 1] [--photos DIR ...]
 
 Each rendered case: the bundled shape photographed along a closed spiral
-(``mpe3d.harness.scene.photos``, the path turned by an angle drawn from the
+(``mpe3d.harness.scene.rendering``, the path turned by an angle drawn from the
 seed, the texture drawn from it too), SIFT features and matches extracted
 once by pycolmap (exhaustive up to 50 photos, sequential beyond), the raw
 matches joined into tracks, and the same tracks given to both methods
@@ -42,31 +42,31 @@ from pathlib import Path
 import numpy as np
 from machine import describe
 
-from mpe3d.harness.scene import metrics, photos, shapes
-from mpe3d.harness.userdata import photos as photos_in
+from mpe3d.harness.scene import metrics, rendering, shapes
+from mpe3d.harness.userdata import photos
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.solvers import threads
 
 METHODS = ("bundle", "colmap")
 
 
-def spiral(count: int, size: int, seed: int, fill: float = 0.85) -> photos.PhotoCameras:
-    """The spiral of ``photos.spiral_cameras`` with photos about 15-18 degrees
+def spiral(count: int, size: int, seed: int, fill: float = 0.85) -> rendering.PhotoCameras:
+    """The spiral of ``rendering.spiral_cameras`` with photos about 15-18 degrees
     apart (the spacing photogrammetry guides ask for: half a turn for 10
     photos, one for 25, two for 100 and more), turned about the vertical by
     an angle drawn from ``seed``."""
-    cams = photos.spiral_cameras(count, size=size, turns=min(2.0, max(0.5, count / 25)), fill=fill)
+    cams = rendering.spiral_cameras(count, size=size, turns=min(2.0, max(0.5, count / 25)), fill=fill)
     a = np.random.default_rng(seed).uniform(0, 2 * np.pi)
     turn = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
-    return photos.PhotoCameras(cams.rotations @ turn.T, cams.translations, cams.focal, cams.width,
+    return rendering.PhotoCameras(cams.rotations @ turn.T, cams.translations, cams.focal, cams.width,
                                cams.height)
 
 
 def tracks_of(folder: Path, names: list[str], workdir: Path, count_threads: int) -> tuple[list[dict], dict]:
     database = workdir / "database.db"
-    seconds = photos_in.extract_and_match(database, folder, names, camera_model="SIMPLE_RADIAL",
+    seconds = photos.extract_and_match(database, folder, names, camera_model="SIMPLE_RADIAL",
                                           threads=count_threads)
-    return photos_in.read_database(database, "raw"), seconds
+    return photos.read_database(database, "raw"), seconds
 
 
 def centres_of(result) -> dict[str, np.ndarray]:
@@ -133,7 +133,7 @@ def rendered_case(shape: str, count: int, seed: int, size: int, count_threads: i
     with tempfile.TemporaryDirectory(prefix="mpe3d-parity-") as scratch:
         scratch = Path(scratch)
         start = time.perf_counter()
-        names = photos.save_images(photos.render(mesh, cams, seed=seed), scratch / "images")
+        names = rendering.save_images(rendering.render(mesh, cams, seed=seed), scratch / "images")
         render_s = time.perf_counter() - start
         views, seconds = tracks_of(scratch / "images", names, scratch, count_threads)
     true_centres = dict(zip(names, cams.centres))
@@ -156,7 +156,7 @@ def rendered_case(shape: str, count: int, seed: int, size: int, count_threads: i
 
 
 def real_case(folder: Path, seed: int, count_threads: int) -> dict:
-    names = photos_in.photo_names(folder)
+    names = photos.photo_names(folder)
     with tempfile.TemporaryDirectory(prefix="mpe3d-parity-") as scratch:
         views, seconds = tracks_of(folder, names, Path(scratch), count_threads)
     line = {"case": str(folder), "photos": len(names), "threads": count_threads, **seconds,

@@ -49,14 +49,14 @@ def rendered(shape: str, count: int, seed: int, work: Path, k1: float = 0.0,
     bounding sphere filling ``fill`` of the width (None: the spiral's 0.85)."""
     from colmap_parity import spiral
 
-    from mpe3d.harness.scene import photos, shapes
+    from mpe3d.harness.scene import rendering, shapes
 
     folder = work / (f"{shape}-{count}-s{seed}" + (f"-k{k1:g}" if k1 else "") + (f"-fill{fill:g}" if fill else ""))
     cams = spiral(count, 400, seed, fill=fill or 0.85)
-    cams = photos.PhotoCameras(cams.rotations, cams.translations, cams.focal, cams.width, cams.height, (k1, 0.0))
+    cams = rendering.PhotoCameras(cams.rotations, cams.translations, cams.focal, cams.width, cams.height, (k1, 0.0))
     names = [f"image_{k:04d}.png" for k in range(count)]
     if not (folder / "done").exists():
-        photos.save_images(photos.render(shapes.load_shape(shape), cams, seed=seed), folder / "images")
+        rendering.save_images(rendering.render(shapes.load_shape(shape), cams, seed=seed), folder / "images")
         (folder / "done").touch()
     return folder / "images", {n: (R, t) for n, R, t in zip(names, cams.rotations, cams.translations)}
 

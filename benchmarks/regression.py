@@ -31,7 +31,7 @@ machine whose speed drifts the units drift too (30 % within an hour here):
 on the same inputs, and gives their ratio in the same run, which no drift
 moves; a case flagged against the baseline is confirmed or cleared that way.
 The inputs are made by this checkout's code (the photos rendered by
-``mpe3d.harness.scene.photos``) and kept in ``--work`` under a digest of
+``mpe3d.harness.scene.rendering``) and kept in ``--work`` under a digest of
 what made them, so a rerun renders nothing and a changed renderer
 renders again. One JSON line a case on stdout, then the table (case,
 baseline, now, ratio) on stderr; a case more than ``SLOWER`` times its
@@ -107,10 +107,10 @@ def _photos(count: int) -> Callable[[Path], None]:
     def make(folder: Path) -> None:
         from colmap_parity import spiral
 
-        from mpe3d.harness.scene import photos, shapes
+        from mpe3d.harness.scene import rendering, shapes
 
-        photos.save_images(photos.render(shapes.load_shape("chair"), spiral(count, 400, 0), seed=0),
-                           folder / "images")
+        rendering.save_images(rendering.render(shapes.load_shape("chair"), spiral(count, 400, 0), seed=0),
+                              folder / "images")
     make.__name__ = f"photos_{count}"
     return make
 
@@ -144,9 +144,9 @@ def _digest(make: Callable) -> str:
     """What made a case's inputs: the maker's source and every mpe3d module it
     may use to render or observe, so that a changed renderer makes them again."""
     import mpe3d.harness.scene.observe as observe
-    import mpe3d.harness.scene.photos as photos
+    import mpe3d.harness.scene.rendering as rendering
 
-    text = inspect.getsource(make) + "".join(inspect.getsource(m) for m in (photos, observe))
+    text = inspect.getsource(make) + "".join(inspect.getsource(m) for m in (rendering, observe))
     for name in ("bundle_scale.py", "colmap_parity.py"):
         text += (HERE / name).read_text()
     closure = [c.cell_contents for c in (make.__closure__ or ())]

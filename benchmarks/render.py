@@ -2,7 +2,7 @@
 
     python benchmarks/render.py [--photos 25] [--size 400] [--shape chair]
 
-One JSON line: seconds a photo of :func:`mpe3d.harness.scene.photos.render`
+One JSON line: seconds a photo of :func:`mpe3d.harness.scene.rendering.render`
 and of the reference below (every ray cast, the texture's value noise as
 whole-array NumPy, as the renderer was before issue 31), their ratio (target
 >= 2), and whether the photos are the same bytes. The photos are every
@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from mpe3d.harness.scene import photos, shapes
+from mpe3d.harness.scene import rendering, shapes
 
 
 def reference_noise(points: np.ndarray, seed: int) -> np.ndarray:
@@ -25,7 +25,7 @@ def reference_noise(points: np.ndarray, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     perm, values = rng.permutation(256), rng.random(256)
     total, amplitude, norm = np.zeros(len(points)), 1.0, 0.0
-    for i, frequency in enumerate(photos.OCTAVES):
+    for i, frequency in enumerate(rendering.OCTAVES):
         p = points * frequency + 17.0 * i
         cell = np.floor(p).astype(np.int64)
         f = p - cell
@@ -37,7 +37,7 @@ def reference_noise(points: np.ndarray, seed: int) -> np.ndarray:
             octave += np.prod(np.where(corner, w, 1.0 - w), axis=1) * values[h]
         total += amplitude * octave
         norm += amplitude
-        amplitude *= photos.OCTAVE_GAIN
+        amplitude *= rendering.OCTAVE_GAIN
     return total / norm
 
 
@@ -59,8 +59,8 @@ def reference_render(mesh, cameras, seed: int = 0, supersample: int = 2) -> np.n
                                                  return_locations=True)
         shade = np.zeros(len(directions))
         albedo = np.clip(0.5 + 2.5 * (reference_noise(where, seed) - 0.5), 0.05, 1.0)
-        shade[ray] = albedo * (photos.AMBIENT + (1.0 - photos.AMBIENT)
-                               * np.abs(mesh.face_normals[tri] @ photos.LIGHT))
+        shade[ray] = albedo * (rendering.AMBIENT + (1.0 - rendering.AMBIENT)
+                               * np.abs(mesh.face_normals[tri] @ rendering.LIGHT))
         pixels = shade.reshape(H, s, W, s).mean(axis=(1, 3))
         out[k] = np.round(255.0 * np.clip(pixels, 0.0, 1.0)).astype(np.uint8)
     return out
@@ -73,15 +73,15 @@ def main(argv=None) -> None:
     parser.add_argument("--shape", default="chair")
     args = parser.parse_args(argv)
     mesh = shapes.load_shape(args.shape)
-    spiral = photos.spiral_cameras(250, size=args.size)
+    spiral = rendering.spiral_cameras(250, size=args.size)
     pick = np.linspace(0, 249, args.photos).round().astype(int)
-    cameras = photos.PhotoCameras(spiral.rotations[pick], spiral.translations[pick], spiral.focal,
+    cameras = rendering.PhotoCameras(spiral.rotations[pick], spiral.translations[pick], spiral.focal,
                                   args.size, args.size)
-    first = photos.PhotoCameras(spiral.rotations[:1], spiral.translations[:1], spiral.focal,
+    first = rendering.PhotoCameras(spiral.rotations[:1], spiral.translations[:1], spiral.focal,
                                 args.size, args.size)
-    photos.render(mesh, first)  # the compiled noise loaded, the ray scene built: not timed
+    rendering.render(mesh, first)  # the compiled noise loaded, the ray scene built: not timed
     seconds = {}
-    for name, renderer in (("reference", reference_render), ("mpe3d", photos.render)):
+    for name, renderer in (("reference", reference_render), ("mpe3d", rendering.render)):
         start = time.perf_counter()
         images = renderer(mesh, cameras)
         seconds[name] = (time.perf_counter() - start) / args.photos

@@ -149,7 +149,7 @@ def short_track_set(folder, seed: int = 0, n_points: int = 544, n_views: int = 5
 def close_up_keypoints(n=300, views=8, distance=0.9, orthographic=False):
     """Keypoints of a cloud from cameras close to it: pinhole photos no
     orthographic projection fits (or, ``orthographic``, their weak twin)."""
-    from mpe3d.harness.scene.photos import spiral_cameras
+    from mpe3d.harness.scene.rendering import spiral_cameras
 
     rng = np.random.default_rng(0)
     X = 0.25 * rng.normal(size=(n, 3))

@@ -28,10 +28,10 @@ from mpe3d.errors import MpeError
 from mpe3d.harness.experiment import colmap_sfm
 from mpe3d.harness.experiment.config import RunConfig
 from mpe3d.harness.experiment.result import RunResult, short_number
-from mpe3d.harness.scene import metrics, photos, shapes
+from mpe3d.harness.scene import metrics, rendering, shapes
 from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.scene.visibility import SELF_HIT_TOLERANCE
-from mpe3d.harness.userdata import photos as photos_in
+from mpe3d.harness.userdata import photos
 from mpe3d.options import OUTLIER_THRESHOLD
 from mpe3d.solvers.sfm.stages import AUTO_RATIO, shows_perspective
 from mpe3d.solvers.sfm.support import median_radii
@@ -40,7 +40,7 @@ TRACK_METHODS = ("bundle", "sgd", "refine")  # what COLMAP's tracks are fed to, 
 MIN_ALIGNED = 3  # registered photos (or shared tracks) a similarity needs
 
 
-def seen_in_photos(mesh, points: np.ndarray, cameras: photos.PhotoCameras) -> np.ndarray:
+def seen_in_photos(mesh, points: np.ndarray, cameras: rendering.PhotoCameras) -> np.ndarray:
     """(K, N) visibility of ``points`` in the photos: in the frame, in front,
     and no surface between the point and the camera centre."""
     pixels, depth = cameras.project(points)
@@ -56,7 +56,7 @@ def seen_in_photos(mesh, points: np.ndarray, cameras: photos.PhotoCameras) -> np
     return inside
 
 
-def _to_mesh_frame(sfm: colmap_sfm.SfmResult, cameras: photos.PhotoCameras, names: list[str], rng):
+def _to_mesh_frame(sfm: colmap_sfm.SfmResult, cameras: rendering.PhotoCameras, names: list[str], rng):
     """The similarity from COLMAP's frame to the mesh's, fitted robustly on the
     camera centres of the registered photos (true against estimated)."""
     order = {name: k for k, name in enumerate(names)}
@@ -127,7 +127,7 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[di
         return out, notes
     row = {int(i): r for r, i in enumerate(sfm.point_ids)}
     colmap_points = _apply(to_mesh, sfm.points)
-    views = photos_in.tied_views(views)
+    views = photos.tied_views(views)
     out["tracks_photos_tied"] = len(views)
     pinhole = False
     for method in TRACK_METHODS:
@@ -171,15 +171,15 @@ def run(config: RunConfig, streams) -> RunResult:
     mesh frame), scored against the mesh's surface samples."""
     mesh = shapes.load_shape(config["shape"])
     truth = shapes.sample_points(mesh, config["points"], streams["sampling"])
-    cameras = photos.spiral_cameras(config["images.count"], size=config["images.size"])
+    cameras = rendering.spiral_cameras(config["images.count"], size=config["images.size"])
     scene = Scene(mesh=mesh, points=truth, rotations=cameras.rotations,
                   visible=seen_in_photos(mesh, truth, cameras))
     scores: dict[str, float] = {}
     with tempfile.TemporaryDirectory(prefix="mpe3d-colmap-") as work:
         work = Path(work)
         start = time.perf_counter()
-        images = photos.render(mesh, cameras, seed=config["seed"])
-        names = photos.save_images(images, work / "images")
+        images = rendering.render(mesh, cameras, seed=config["seed"])
+        names = rendering.save_images(images, work / "images")
         scores["render_s"] = time.perf_counter() - start
         sfm = colmap_sfm.run_sfm(work / "images", names, work, focal=cameras.focal,
                              principal_point=cameras.principal_point,
@@ -192,7 +192,7 @@ def run(config: RunConfig, streams) -> RunResult:
                   registered_share=len(sfm.registered) / len(names), colmap_models=sfm.models,
                   colmap_points=len(sfm.points), points_kept=len(truth))
     facts = {"colmap_version": colmap_sfm.colmap_version(),
-             "matching": photos_in.matching_for(len(names), config["images.matching"]), "warnings": []}
+             "matching": photos.matching_for(len(names), config["images.matching"]), "warnings": []}
     cloud = np.zeros((0, 3))
     if len(sfm.registered) >= MIN_ALIGNED and len(sfm.points):
         to_mesh = _to_mesh_frame(sfm, cameras, names, streams["metrics"])

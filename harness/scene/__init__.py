@@ -3,7 +3,7 @@
 Shapes (bundled meshes and procedural ones), viewpoints (the views'
 rotations and angle bands), visibility, noise, :mod:`.observe` (ground truth
 to :class:`mpe3d.solvers.Observations`), the metrics that score a
-reconstruction against the ground truth (CD, EMD, ROA) and ray-traced photos
+reconstruction against the ground truth (CD, EMD, ROA) and ray-traced renderings
 for the colmap experiment.
 
 May import: :mod:`mpe3d.solvers` (its public types), :mod:`mpe3d.plugins`
@@ -11,4 +11,4 @@ May import: :mod:`mpe3d.solvers` (its public types), :mod:`mpe3d.plugins`
 harness: a scene is built from a run's keys, whoever holds them.
 """
 
-__all__ = ["metrics", "noise", "observe", "photos", "shapes", "viewpoints", "visibility"]
+__all__ = ["metrics", "noise", "observe", "rendering", "shapes", "viewpoints", "visibility"]

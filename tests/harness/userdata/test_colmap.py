@@ -7,7 +7,7 @@ from mpe3d.cli import main
 from mpe3d.errors import MpeError
 from mpe3d.harness.experiment import colmap_sfm
 from mpe3d.harness.experiment.colmap_pipeline import model_misfit, seen_in_photos
-from mpe3d.harness.scene import metrics, photos, shapes
+from mpe3d.harness.scene import metrics, rendering, shapes
 from mpe3d.harness.userdata import colmap_model
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.harness.userdata.results import ViewCamera
@@ -20,10 +20,10 @@ pycolmap = pytest.importorskip("pycolmap")
 
 def test_renderer_is_deterministic_per_seed_and_draws_the_mesh_where_the_cameras_see_it():
     mesh = shapes.load_shape("chair")
-    cameras = photos.spiral_cameras(3, size=96)
-    first = photos.render(mesh, cameras, seed=3)
-    assert np.array_equal(first, photos.render(mesh, cameras, seed=3))
-    assert not np.array_equal(first, photos.render(mesh, cameras, seed=4))  # another texture
+    cameras = rendering.spiral_cameras(3, size=96)
+    first = rendering.render(mesh, cameras, seed=3)
+    assert np.array_equal(first, rendering.render(mesh, cameras, seed=3))
+    assert not np.array_equal(first, rendering.render(mesh, cameras, seed=4))  # another texture
     # Visible surface points project onto the object's pixels (not the black background):
     # the camera convention of the renderer and of PhotoCameras.project agree.
     points = shapes.sample_points(mesh, 400, np.random.default_rng(0))
@@ -35,7 +35,7 @@ def test_renderer_is_deterministic_per_seed_and_draws_the_mesh_where_the_cameras
 
 
 def test_spiral_cameras_look_at_the_object_with_image_y_down():
-    cameras = photos.spiral_cameras(8, size=200)
+    cameras = rendering.spiral_cameras(8, size=200)
     R = cameras.rotations
     assert np.allclose(R @ np.swapaxes(R, 1, 2), np.eye(3)) and np.allclose(np.linalg.det(R), 1)
     pixel, depth = cameras.project(np.array([[0.0, 0.0, 0.0], [0.0, 0.3, 0.0]]))
@@ -63,7 +63,7 @@ def test_emd_of_clouds_of_different_sizes_is_the_mean_transport_distance():
 def _synthetic_model(folder, rng, n=300, views=8):
     mesh = shapes.load_shape("chair")
     X = shapes.sample_points(mesh, n, rng)
-    cameras = photos.spiral_cameras(views, size=400)
+    cameras = rendering.spiral_cameras(views, size=400)
     uv, _ = cameras.project(X)
     seen = [rng.random(n) < 0.8 for _ in range(views)]
     observed = [{"name": f"img{k}.png", "ids": np.flatnonzero(keep) + 1, "xy": uv[k][keep]}
@@ -158,8 +158,8 @@ def test_model_output_folder_is_checked_before_any_work(tmp_path, rng, capsys):
 
 def test_a_tiny_colmap_run_registers_photos_and_its_tracks_are_consistent(tmp_path):
     mesh = shapes.load_shape("chair")
-    cameras = photos.spiral_cameras(10, size=240, turns=0.5)  # 18 degrees apart
-    names = photos.save_images(photos.render(mesh, cameras, seed=0), tmp_path / "images")
+    cameras = rendering.spiral_cameras(10, size=240, turns=0.5)  # 18 degrees apart
+    names = rendering.save_images(rendering.render(mesh, cameras, seed=0), tmp_path / "images")
     sfm = colmap_sfm.run_sfm(tmp_path / "images", names, tmp_path, focal=cameras.focal,
                          principal_point=cameras.principal_point)
     assert len(sfm.registered) >= 3 and len(sfm.points) >= 50

@@ -7,8 +7,8 @@ from PIL import Image
 
 from mpe3d.cli import main
 from mpe3d.errors import MpeError
-from mpe3d.harness.scene import photos, shapes
-from mpe3d.harness.userdata import photos as photos_in
+from mpe3d.harness.scene import rendering, shapes
+from mpe3d.harness.userdata import photos
 from mpe3d.harness.userdata.formats import read_points
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.solvers.sfm import colmap_mapper
@@ -25,8 +25,8 @@ def shoot(tmp_path_factory):
     """A dozen photos of the chair along half a turn of the spiral (15 degrees
     apart, as photogrammetry guides ask), and their cameras."""
     folder = tmp_path_factory.mktemp("photos") / "chair"
-    cameras = photos.spiral_cameras(PHOTOS, size=320, turns=0.5)
-    names = photos.save_images(photos.render(shapes.load_shape("chair"), cameras, seed=1), folder)
+    cameras = rendering.spiral_cameras(PHOTOS, size=320, turns=0.5)
+    names = rendering.save_images(rendering.render(shapes.load_shape("chair"), cameras, seed=1), folder)
     return folder, dict(zip(names, cameras.centres))
 
 
@@ -34,7 +34,7 @@ def shoot(tmp_path_factory):
 def database(shoot, tmp_path_factory):
     folder, _ = shoot
     path = tmp_path_factory.mktemp("db") / "database.db"
-    photos_in.extract_and_match(path, folder, photos_in.photo_names(folder), camera_model="SIMPLE_RADIAL")
+    photos.extract_and_match(path, folder, photos.photo_names(folder), camera_model="SIMPLE_RADIAL")
     return path
 
 
@@ -78,7 +78,7 @@ def test_a_photo_reconstruction_writes_a_colmap_model(shoot, tmp_path):
 
 @pytest.mark.parametrize("matches", ["raw", "verified"])
 def test_a_colmap_database_is_read_by_its_raw_or_verified_matches(database, tmp_path, matches):
-    views = photos_in.read_database(database, matches)
+    views = photos.read_database(database, matches)
     assert len(views) >= 8 and all(v["principal_point"] == (160.0, 160.0) for v in views)
     assert "focal_px" not in views[0]  # rendered PNGs carry no EXIF
     report = tmp_path / "r.json"
@@ -92,10 +92,10 @@ def test_raw_matches_hold_what_verification_threw_away(database):
         raw = sum(len(m) for m in db.read_all_matches()[1])
         verified = sum(len(g.inlier_matches) for g in db.read_two_view_geometries()[1])
     assert raw > verified > 0
-    tracks = {kind: photos_in.match_tracks(database, kind) for kind in ("raw", "verified")}
+    tracks = {kind: photos.match_tracks(database, kind) for kind in ("raw", "verified")}
     assert tracks["raw"].conflicting > tracks["verified"].conflicting  # wrong matches join tracks
     with pytest.raises(MpeError, match="matches: 'checked' is not one of raw, verified"):
-        photos_in.match_tracks(database, "checked")
+        photos.match_tracks(database, "checked")
 
 
 def _with_exif(source, folder, focal_35mm):
@@ -115,10 +115,10 @@ def test_an_exif_focal_length_is_kept_only_when_plausible(shoot, tmp_path):
     for focal_35mm in (40, 212):  # a normal lens; 5.9 times the image side, a stale tag
         photo_dir = _with_exif(folder, tmp_path / f"f{focal_35mm}", focal_35mm)
         database = tmp_path / f"f{focal_35mm}.db"
-        photos_in.extract_and_match(database, photo_dir, photos_in.photo_names(photo_dir),
+        photos.extract_and_match(database, photo_dir, photos.photo_names(photo_dir),
                                     camera_model="SIMPLE_RADIAL")
-        facts[focal_35mm] = photos_in._camera_facts(database)
-    assert facts[40]["focal_px"] / 320 in photos_in.PLAUSIBLE_FOCAL
+        facts[focal_35mm] = photos._camera_facts(database)
+    assert facts[40]["focal_px"] / 320 in photos.PLAUSIBLE_FOCAL
     assert "focal_px" not in facts[212]
 
 
@@ -200,7 +200,7 @@ def test_bad_photo_folders_get_one_line_and_nothing_written(tmp_path, capsys, sh
 def test_a_database_without_matches_is_one_line(shoot, tmp_path, capsys):
     folder, _ = shoot
     database = tmp_path / "database.db"
-    pycolmap.extract_features(database, folder, image_names=photos_in.photo_names(folder)[:3],
+    pycolmap.extract_features(database, folder, image_names=photos.photo_names(folder)[:3],
                               device=pycolmap.Device.cpu)
     out = tmp_path / "cloud.ply"
     assert main(["reconstruct", str(database), "--out", str(out)]) == 2
@@ -226,11 +226,11 @@ def test_auto_keeps_the_lens_of_distorted_photos_and_none_of_undistorted_ones(sh
     """camera="auto" on rendered photos: through a lens of k1 = -0.3 (the
     object filling the frame, so its edges move by pixels) it keeps the
     radial camera, and recovers k1; without a lens, the plain pinhole."""
-    spiral = photos.spiral_cameras(10, size=320, turns=0.4, fill=1.6, distance=1.2)
-    lens = photos.PhotoCameras(spiral.rotations, spiral.translations, spiral.focal, spiral.width,
+    spiral = rendering.spiral_cameras(10, size=320, turns=0.4, fill=1.6, distance=1.2)
+    lens = rendering.PhotoCameras(spiral.rotations, spiral.translations, spiral.focal, spiral.width,
                                spiral.height, (-0.3, 0.0))
     folder = tmp_path / "lens"
-    photos.save_images(photos.render(shapes.load_shape("chair"), lens, seed=2), folder)
+    rendering.save_images(rendering.render(shapes.load_shape("chair"), lens, seed=2), folder)
     distorted = reconstruct(folder).report
     assert distorted["camera"] == "radial", [s["why"] for s in distorted["stages"] if s["stage"] == "lens"]
     assert distorted["cameras"][0]["k1"] == pytest.approx(-0.3, abs=0.1)

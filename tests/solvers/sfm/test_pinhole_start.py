@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from mpe3d.harness.scene.photos import spiral_cameras
+from mpe3d.harness.scene.rendering import spiral_cameras
 from mpe3d.solvers.sfm.pinhole_start import MAX_ERROR, pinhole_start
 from mpe3d.solvers.sfm.tracks import Tracks, residual_lengths
 from tests.helpers import similarity_rms

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from mpe3d.harness.scene.photos import PhotoCameras, spiral_cameras
+from mpe3d.harness.scene.rendering import PhotoCameras, spiral_cameras
 from mpe3d.solvers.sfm import bundle, stages
 from tests.helpers import random_views
 
