@@ -46,6 +46,7 @@ from mpe3d.harness.scene import metrics, rendering, shapes
 from mpe3d.harness.userdata import photos
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.solvers import threads
+from mpe3d.solvers.sfm import colmap
 
 METHODS = ("bundle", "colmap")
 
@@ -64,8 +65,7 @@ def spiral(count: int, size: int, seed: int, fill: float = 0.85) -> rendering.Ph
 
 def tracks_of(folder: Path, names: list[str], workdir: Path, count_threads: int) -> tuple[list[dict], dict]:
     database = workdir / "database.db"
-    seconds = photos.extract_and_match(database, folder, names, camera_model="SIMPLE_RADIAL",
-                                          threads=count_threads)
+    seconds = colmap.extract_and_match(database, folder, names, threads=count_threads)
     return photos.read_database(database, "raw"), seconds
 
 

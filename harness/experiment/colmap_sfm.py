@@ -12,19 +12,19 @@ Reading and writing model folders is :mod:`mpe3d.harness.userdata.colmap_model`'
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from PIL import Image as PILImage
 
-from mpe3d.harness.userdata.photos import FeatureTracks, extract_and_match, match_tracks
-from mpe3d.solvers.sfm.colmap_link import require_pycolmap
+from mpe3d.harness.userdata.photos import FeatureTracks, match_tracks
+from mpe3d.solvers.sfm import colmap
+from mpe3d.solvers.sfm.colmap_mapper import majority_points
 
 
 def colmap_version() -> str:
-    pycolmap = require_pycolmap()
-    return f"pycolmap {pycolmap.__version__} ({pycolmap.COLMAP_version})"
+    return colmap.version()
 
 
 @dataclass
@@ -39,7 +39,7 @@ class SfmResult:
     models: int  # how many separate models the mapper made
     focal: float | None  # the refined focal length of the largest model
     reprojection_px: float | None  # its mean reprojection error
-    image_points: dict[str, dict[int, int]] = field(default_factory=dict)  # name -> {keypoint: point3D}
+    image_points: dict[str, np.ndarray] = field(default_factory=dict)  # name -> point3D id per keypoint, -1 none
     seconds: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -52,44 +52,26 @@ def run_sfm(image_dir: Path, names: list[str], workdir: Path, *, focal: float,
             max_features: int = 8192) -> SfmResult:
     """COLMAP on ``names`` in ``image_dir``: one shared SIMPLE_PINHOLE camera
     started at ``focal`` (refined by the mapper, as for photos whose EXIF
-    gives the focal length), SIFT, matching, incremental mapping."""
-    pycolmap = require_pycolmap()
-    pycolmap.set_random_seed(seed)
+    gives the focal length), SIFT, matching, incremental mapping, on one
+    thread with the run's seed (so that a run repeats)."""
     database = workdir / "database.db"
     database.unlink(missing_ok=True)
-    seconds = extract_and_match(database, image_dir, names, camera_model="SIMPLE_PINHOLE",
-                                camera_params=f"{focal},{principal_point[0]},{principal_point[1]}",
-                                matching=matching, threads=1, max_features=max_features)
-    start = time.perf_counter()
-    mapping = pycolmap.IncrementalPipelineOptions()
-    mapping.num_threads = 1
-    mapping.random_seed = seed
-    sparse = workdir / "sparse"
-    sparse.mkdir(parents=True, exist_ok=True)
-    models = pycolmap.incremental_mapping(database, image_dir, sparse, options=mapping)
-    seconds["map_s"] = time.perf_counter() - start
-    return _largest(models, database, names, seconds)
-
-
-def _largest(models: dict, database: Path, names: list[str], seconds: dict) -> SfmResult:
-    empty = SfmResult(database, names, np.zeros((0, 3)), np.zeros(0, dtype=np.int64), {},
-                      len(models), None, None, {}, seconds)
-    if not models:
-        return empty
-    model = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
-    ids = np.array(sorted(model.points3D), dtype=np.int64)
-    points = np.array([model.points3D[i].xyz for i in ids]).reshape(-1, 3)
-    registered, image_points = {}, {}
-    for image_id in model.reg_image_ids():
-        image = model.images[image_id]
-        pose = image.cam_from_world()
-        registered[image.name] = (np.asarray(pose.rotation.matrix()), np.asarray(pose.translation))
-        image_points[image.name] = {i: int(p.point3D_id) for i, p in enumerate(image.points2D)
-                                    if p.has_point3D()}
+    with PILImage.open(image_dir / names[0]) as first:
+        width, height = first.size
+    camera = colmap.simple_camera("SIMPLE_PINHOLE", width, height, focal, principal_point)
+    seconds = colmap.extract_and_match(database, image_dir, names, camera=camera, matching=matching,
+                                       threads=1, max_features=max_features, seed=seed)
+    model = colmap.incremental_mapping(database, image_dir, threads=1, seed=seed,
+                                       scratch_dir=workdir / "sparse")
+    if model is None:  # the mapper made no model at all
+        return SfmResult(database, names, np.zeros((0, 3)), np.zeros(0, dtype=np.int64), {}, 0, None, None,
+                         {}, seconds)
+    seconds.update(model.seconds)
+    registered = {name: (image.rotation, image.translation) for name, image in model.images.items()}
     camera = next(iter(model.cameras.values()))
-    return SfmResult(database, names, points, ids, registered, len(models),
-                     float(camera.mean_focal_length()), float(model.compute_mean_reprojection_error()),
-                     image_points, seconds)
+    return SfmResult(database, names, model.points, model.point_ids, registered, model.models,
+                     camera.focal, model.reprojection_px,
+                     {name: image.point3d for name, image in model.images.items()}, seconds)
 
 
 def database_tracks(database: Path) -> FeatureTracks:
@@ -99,10 +81,11 @@ def database_tracks(database: Path) -> FeatureTracks:
 
 def triangulated(tracks: FeatureTracks, sfm: SfmResult) -> dict[int, int]:
     """track -> the point3D of COLMAP's model that most of its keypoints went to."""
-    votes: dict[int, dict[int, int]] = {}
-    for t, k, kp in zip(tracks.track, tracks.image, tracks.keypoint):
-        point = sfm.image_points.get(tracks.names[k], {}).get(int(kp))
-        if point is not None:
-            votes.setdefault(int(t), {}).setdefault(point, 0)
-            votes[int(t)][point] += 1
-    return {t: max(v, key=v.get) for t, v in votes.items()}
+    point3d = np.full(len(tracks.track), -1, dtype=np.int64)
+    for k, name in enumerate(tracks.names):
+        ids = sfm.image_points.get(name)
+        rows = np.flatnonzero(tracks.image == k)
+        if ids is not None and len(rows):
+            point3d[rows] = ids[tracks.keypoint[rows]]
+    chosen = majority_points(tracks.track, point3d, tracks.n_tracks)
+    return {int(t): int(chosen[t]) for t in np.flatnonzero(chosen >= 0)}

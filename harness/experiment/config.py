@@ -18,7 +18,6 @@ import yaml
 from mpe3d.errors import MpeError, coerce, suggest
 from mpe3d.options import (
     CAMERAS,
-    COLMAP_CAMERAS,
     INITS,
     OBJECTIVES,
     OUTLIER_THRESHOLD,
@@ -354,10 +353,12 @@ def _check_tracks(v: dict[str, Any], bad) -> None:
                 if v["tracks.root"] is None and not path.is_absolute() else ""
             raise MpeError(f"{key}: {path}: no such file or folder{hint}", key=key)
     if v["tracks.solver"] == "colmap" and v["tracks.objective"] == "reprojection":
-        for key, allowed in (("tracks.camera", COLMAP_CAMERAS.names), ("tracks.loss", ("l2",)),
-                             ("tracks.start", ("own",)), ("tracks.outlier_threshold", (OUTLIER_THRESHOLD,))):
-            if v[key] not in allowed:
-                raise bad(key, f"tracks.solver=colmap takes {' or '.join(allowed)} (COLMAP's mapper)")
+        from mpe3d.solvers.sfm.colmap_mapper import refused
+
+        for option in ("camera", "loss", "start", "outlier_threshold"):
+            reason = refused(option, v[f"tracks.{option}"])
+            if reason is not None:
+                raise bad(f"tracks.{option}", f"tracks.solver=colmap: {reason}")
     if v["tracks.objective"] == "stress":  # solver.name: any registered solver (make_config checks it)
         if v["tracks.loss"] not in STRESS_LOSSES:
             raise bad("tracks.loss", f"the stress takes {' or '.join(STRESS_LOSSES)}")

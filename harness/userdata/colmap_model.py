@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from mpe3d.errors import MpeError
-from mpe3d.solvers.sfm.colmap_link import require_pycolmap
+from mpe3d.solvers.sfm import colmap
 
 MODEL_FILES = ("cameras", "images", "points3D")
 # An affine camera written as a pinhole this many cloud diameters away: its
@@ -73,34 +73,25 @@ def read_model(folder: str | Path) -> list[dict]:
     every view has the camera that ``camera="perspective"`` fits; each view
     dict carries that ``principal_point``.
     """
-    pycolmap = require_pycolmap()
     folder = Path(folder)
     if model_files(folder) is None:
         _check_model_folder(folder)
         raise MpeError(f"{folder}: no COLMAP model (cameras, images and points3D as .bin or .txt)")
     if model_files(folder) == "bin":
         _check_binary_counts(folder)
-    try:
-        model = pycolmap.Reconstruction(folder)
-    except Exception as exc:  # pycolmap raises RuntimeError/ValueError with COLMAP's check text
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise MpeError(f"{folder}: cannot read the COLMAP model: {first}") from None
+    model = colmap.read_model(folder)
     if not model.cameras:
         raise MpeError(f"{folder}: the COLMAP model has no cameras")
-    cameras = [model.cameras[i] for i in sorted(model.cameras)]
-    focal = float(np.mean([c.mean_focal_length() for c in cameras]))
-    centre = np.array([cameras[0].principal_point_x, cameras[0].principal_point_y], dtype=float)
+    cameras = [model.cameras[i].check(str(folder)) for i in sorted(model.cameras)]
+    focal = float(np.mean([c.focal for c in cameras]))
+    centre = cameras[0].principal_point
     views = []
-    for image_id in sorted(model.reg_image_ids()):
-        image = model.images[image_id]
-        rows = [(p.point3D_id, p.xy) for p in image.points2D if p.has_point3D()]
-        if not rows:
+    for name, image in model.images.items():
+        has = image.point3d >= 0
+        if not has.any():
             continue
-        ids = np.array([r[0] for r in rows], dtype=np.int64)
-        xy = np.array([r[1] for r in rows], dtype=float)
-        normalised = np.asarray(image.camera.cam_from_img(xy), dtype=float)
-        views.append({"name": image.name, "ids": ids, "xy": focal * normalised[:, :2] + centre,
-                      "principal_point": centre})
+        xy = model.cameras[image.camera_id].to_pinhole(image.xy[has], focal, centre)
+        views.append({"name": name, "ids": image.point3d[has], "xy": xy, "principal_point": centre})
     if len(views) < 2:
         raise MpeError(f"{folder}: the COLMAP model has {len(views)} registered image(s) with "
                        "points; at least 2 are needed")
@@ -148,9 +139,7 @@ def write_model(folder: str | Path, points: np.ndarray, ids: np.ndarray, views: 
     :class:`~.results.ViewCamera` in the same order (None: points only, no images);
     ``dropped`` the (view name, id) pairs left out as wrong matches.
     """
-    pycolmap = require_pycolmap()
     folder = Path(folder)
-    model = pycolmap.Reconstruction()
     notes = []
     numeric = ids.dtype.kind in "iu" and len(ids) and ids.min() >= 0 and ids.max() < 2 ** 63 - 1
     point_id = (ids.astype(np.int64) + (1 if numeric and ids.min() == 0 else 0)) if numeric \
@@ -160,6 +149,7 @@ def write_model(folder: str | Path, points: np.ndarray, ids: np.ndarray, views: 
                      + ("its id + 1" if numeric else "i + 1 (the order of the written cloud)"))
     row = {key: i for i, key in enumerate(ids.tolist())}
     tracks: dict[int, list] = {}
+    images = []
     if cameras is not None:
         diameter = float(np.linalg.norm(np.ptp(points, axis=0))) or 1.0
         c = np.asarray(principal_point, dtype=float)
@@ -168,31 +158,19 @@ def write_model(folder: str | Path, points: np.ndarray, ids: np.ndarray, views: 
             notes.append(f"COLMAP has no affine camera: each view is written as a pinhole "
                          f"{FAR:g} cloud diameters away, which projects like it to 1/{FAR:g}")
         skip = {(str(v), str(i)) for v, i in dropped}
-        for k, (view, camera) in enumerate(zip(views, cameras), start=1):
+        for k, (view, camera) in enumerate(zip(views, cameras)):
             if not camera.registered:  # COLMAP's mapper left it out: no pose to write
                 continue
             fx, fy, centre, R, T = _pinhole(camera, c, diameter)
-            model.add_camera_with_trivial_rig(pycolmap.Camera.create_from_model_name(
-                k, "PINHOLE", fx, int(width), int(height)))
-            model.cameras[k].params = [fx, fy, centre[0], centre[1]]
-            name = str(view.get("name", k - 1))
+            name = str(view.get("name", k))
             keep = [j for j, i in enumerate(view["ids"]) if (name, str(i)) not in skip]
-            xy = np.asarray(view["xy"], dtype=float)[keep]
-            image = pycolmap.Image(name=name if "." in name else f"{name}.png",
-                                   keypoints=xy, camera_id=k, image_id=k)
-            model.add_image_with_trivial_frame(image, pycolmap.Rigid3d(np.column_stack([R, T])))
+            pinhole = colmap.Camera("PINHOLE", int(width), int(height), (fx, fy, centre[0], centre[1]))
+            images.append(colmap.PosedImage(name if "." in name else f"{name}.png", pinhole, R, T,
+                                            np.asarray(view["xy"], dtype=float)[keep]))
             for j, i in enumerate(np.asarray(view["ids"])[keep].tolist()):
                 if i in row:  # a point left out (unplaced) keeps its keypoint, not a track
-                    tracks.setdefault(row[i], []).append(pycolmap.TrackElement(k, j))
-    for i, (p, pid) in enumerate(zip(points, point_id)):
-        point = pycolmap.Point3D()
-        point.xyz = p
-        point.track = pycolmap.Track(tracks.get(i, []))
-        model.add_point3D_with_id(int(pid), point)
-        for element in tracks.get(i, []):
-            model.images[element.image_id].set_point3D_for_point2D(element.point2D_idx, int(pid))
-    folder.mkdir(parents=True, exist_ok=True)
-    model.write(folder)
+                    tracks.setdefault(row[i], []).append((len(images) - 1, j))
+    colmap.write_model(folder, images, point_id, points, tracks)
     return notes
 
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from mpe3d.errors import MpeError, first_line
 from mpe3d.harness.files import atomic_write, write_together
+from mpe3d.options import DEFAULT_MATCHES
 
 OUTPUT_FORMATS = (".ply", ".csv", ".npy")
 ORTHONORMAL_TOL = 1e-6
@@ -307,9 +308,11 @@ def is_photo_folder(path: str | Path) -> bool:
     return not looks_like_model(path) and not any(path.glob("*.npz")) and bool(photos.photo_names(path))
 
 
-def read_views(path: str | Path, matches: str = "raw") -> list[dict]:
+def read_views(path: str | Path, matches: str = DEFAULT_MATCHES, *, seed: int = 0,
+               scratch: str | Path | None = None) -> list[dict]:
     """The views of an input file as dicts ``{name, ids, xy | dist}``, not yet checked;
-    a folder of photos or a COLMAP database gives its tracks of ``matches``."""
+    a folder of photos or a COLMAP database gives its tracks of ``matches``
+    (photos: COLMAP's database under ``scratch``, its RANSAC seeded by ``seed``)."""
     path = Path(path)
     if path.is_dir():
         from mpe3d.harness.userdata import photos
@@ -318,7 +321,7 @@ def read_views(path: str | Path, matches: str = "raw") -> list[dict]:
         if looks_like_model(path):
             return read_model(path)
         if is_photo_folder(path):
-            return photos.read_photos(path, matches)
+            return photos.read_photos(path, matches, seed=seed, scratch=scratch)
         return _read_folder(path)
     if not path.exists():
         raise MpeError(f"{path}: no such file")

@@ -1,38 +1,38 @@
-"""Photos and COLMAP databases in: SIFT features, matches and their tracks, by pycolmap.
+"""A user's photos and COLMAP databases in: SIFT features, matches and their tracks.
 
-* :func:`extract_and_match`: SIFT keypoints of each photo and their matches
-  (exhaustive up to :data:`EXHAUSTIVE_UP_TO` photos, sequential along the
-  path beyond), into a COLMAP database;
+* :func:`read_photos`: a folder of photos (every image COLMAP reads; other
+  files ignored, a damaged image skipped with a warning naming it) through
+  COLMAP's SIFT and matcher, into a database in a scratch folder (``scratch``,
+  its free space checked first), then read as :func:`read_database` reads one;
 * :func:`match_tracks`: a database's matches joined into tracks (union-find
   over the matched keypoints), the matcher's raw matches or those its
   geometric verification kept; a track that holds two keypoints of one
   photo is inconsistent and dropped;
-* :func:`read_photos` and :func:`read_database`: either as keypoint views
-  for :func:`mpe3d.harness.userdata.reconstruct.reconstruct`, each with the
-  photos' principal point, size and, when it is plausible, EXIF focal length.
+* :func:`read_database`: its tracks as keypoint views for
+  :func:`mpe3d.harness.userdata.reconstruct.reconstruct`, each photo's
+  keypoints taken through its own camera (:func:`camera_views`).
+
+Every COLMAP call goes through :mod:`mpe3d.solvers.sfm.colmap`. ``matches``
+defaults to ``raw`` for every input (glossary, docs/architecture.md).
 """
 
 from __future__ import annotations
 
-import tempfile
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from mpe3d.errors import MpeError
-from mpe3d.options import MATCHES, Interval
-from mpe3d.solvers.sfm.colmap_link import require_pycolmap
+from mpe3d.options import DEFAULT_MATCHES, MATCHES, Interval
+from mpe3d.solvers.degenerate import MIN_VIEW_POINTS, SHARED_VARIABLE, shared_points, view_groups
+from mpe3d.solvers.sfm import colmap
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
-EXHAUSTIVE_UP_TO = 50  # photos; beyond, matching pairs each photo with its path neighbours
-SEQUENTIAL_OVERLAP = 10  # neighbours on each side of a photo along the path
 # An EXIF focal length is trusted between these multiples of the larger image
 # side (fields of view of about 14 to 118 degrees); beyond, it is a camera's
 # lie or a resized photo's stale tag (3,767 px for a 640-px image).
 PLAUSIBLE_FOCAL = Interval(float, 0.3, 4.0)
-MIN_TRACKS = 3  # tracks a photo must hold to be a view
 SQLITE_HEADER = b"SQLite format 3\x00"
 
 
@@ -54,7 +54,7 @@ class FeatureTracks:
     def views_per_track(self) -> np.ndarray:
         return np.bincount(self.track, minlength=self.n_tracks)
 
-    def views(self, min_points: int = MIN_TRACKS) -> list[dict]:
+    def views(self, min_points: int = MIN_VIEW_POINTS) -> list[dict]:
         """One keypoint view per photo (tracks as ids), photos with fewer than
         ``min_points`` tracks left out."""
         out = []
@@ -79,74 +79,23 @@ def looks_like_database(path: Path) -> bool:
         return False
 
 
-def matching_for(count: int, matching: str = "auto") -> str:
-    if matching != "auto":
-        return matching
-    return "exhaustive" if count <= EXHAUSTIVE_UP_TO else "sequential"
-
-
-def extract_and_match(database: Path, image_dir: Path, names: list[str], *, camera_model: str,
-                      camera_params: str = "", matching: str = "auto", threads: int = 1,
-                      max_features: int = 8192, verify: bool = True) -> dict[str, float]:
-    """SIFT on ``names`` (one shared camera) and their matches into ``database``,
-    each pair's geometrically verified too unless ``verify`` is False (raw
-    matches need none, and it is most of the matching's time: 250 photos,
-    7.1 s with it, 0.8 s without); returns the seconds of each step."""
-    pycolmap = require_pycolmap()
-    seconds = {}
-    start = time.perf_counter()
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = camera_model
-    reader.camera_params = camera_params
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = threads
-    extraction.sift.max_num_features = max_features
-    pycolmap.extract_features(database, image_dir, image_names=names,
-                              camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
-    seconds["extract_s"] = time.perf_counter() - start
-    start = time.perf_counter()
-    options = pycolmap.FeatureMatchingOptions()
-    options.num_threads = threads
-    options.skip_geometric_verification = not verify
-    if matching_for(len(names), matching) == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=options, device=pycolmap.Device.cpu)
-    else:
-        pairing = pycolmap.SequentialPairingOptions()
-        pairing.overlap = SEQUENTIAL_OVERLAP
-        pairing.loop_detection = False  # needs a vocabulary tree file
-        pycolmap.match_sequential(database, matching_options=options, pairing_options=pairing,
-                                  device=pycolmap.Device.cpu)
-    seconds["match_s"] = time.perf_counter() - start
-    return seconds
-
-
-def match_tracks(database: Path, matches: str = "verified") -> FeatureTracks:
+def match_tracks(database: Path, matches: str = DEFAULT_MATCHES) -> FeatureTracks:
     """Union-find over every match of ``database`` (``matches``: the matcher's
     raw ones, or the inliers of its geometric verification)."""
     MATCHES.check("matches", matches)
-    pycolmap = require_pycolmap()
-    with pycolmap.Database.open(str(database)) as db:
-        images = sorted(db.read_all_images(), key=lambda im: im.image_id)
-        index = {im.image_id: k for k, im in enumerate(images)}
-        keypoints = [np.asarray(db.read_keypoints(im.image_id))[:, :2].reshape(-1, 2) for im in images]
-        if matches == "raw":
-            pair_ids, found = db.read_all_matches()
-        else:
-            pair_ids, geometries = db.read_two_view_geometries()
-            found = [geometry.inlier_matches for geometry in geometries]
+    return tracks_of(colmap.read_database(database, matches))
+
+
+def tracks_of(db: colmap.Database) -> FeatureTracks:
+    """A database's matches joined into tracks."""
+    keypoints = db.keypoints
     offsets = np.concatenate([[0], np.cumsum([len(kp) for kp in keypoints])]).astype(np.int64)
-    edges = []
-    for pair_id, pair in zip(pair_ids, found):
-        pair = np.asarray(pair).reshape(-1, 2).astype(np.int64)
-        if len(pair):
-            a, b = (index[i] for i in pycolmap.pair_id_to_image_pair(pair_id))
-            edges.append(np.column_stack([offsets[a] + pair[:, 0], offsets[b] + pair[:, 1]]))
-    names = [im.name for im in images]
+    edges = [np.column_stack([offsets[a] + pair[:, 0], offsets[b] + pair[:, 1]])
+             for (a, b), pair in zip(db.pairs, db.matches) if len(pair)]
     if not edges:
         empty = np.zeros(0, dtype=np.int64)
-        return FeatureTracks(names, empty, empty, empty, np.zeros((0, 2)), 0)
-    return _union(names, keypoints, offsets, np.concatenate(edges))
+        return FeatureTracks(db.names, empty, empty, empty, np.zeros((0, 2)), 0)
+    return _union(db.names, keypoints, offsets, np.concatenate(edges))
 
 
 def _union(names, keypoints, offsets, edges) -> FeatureTracks:
@@ -157,8 +106,8 @@ def _union(names, keypoints, offsets, edges) -> FeatureTracks:
     graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(total, total))
     _, label = connected_components(graph, directed=False)
     node = np.unique(edges)  # keypoints in some match
-    image = np.searchsorted(offsets, node, side="right") - 1
-    label = label[node]
+    image = (np.searchsorted(offsets, node, side="right") - 1).astype(np.int64)
+    label = label[node].astype(np.int64)  # csgraph's labels are int32: their products with a photo count are not
     per_track = np.bincount(label)
     distinct = np.bincount(np.unique(label * len(names) + image) // len(names), minlength=len(per_track))
     good = per_track == distinct  # no photo twice
@@ -174,42 +123,73 @@ def tied_views(views: list[dict]) -> list[dict]:
     """The largest group of ``views`` that shared tracks tie together (the
     rule of :func:`mpe3d.solvers.degenerate.check_geometry`), as COLMAP keeps
     its largest model: photos that no track links to the rest fix nothing."""
-    from mpe3d.solvers.degenerate import SHARED_VARIABLE, view_groups
-
     n = 1 + max(int(v["ids"].max()) for v in views)
-    alpha = np.zeros((len(views), n), dtype=np.int32)
-    for k, view in enumerate(views):
-        alpha[k, view["ids"]] = 1
-    count, labels = view_groups(alpha @ alpha.T, SHARED_VARIABLE)
+    view = np.concatenate([np.full(len(v["ids"]), k, dtype=np.int64) for k, v in enumerate(views)])
+    count, labels = view_groups(shared_points(view, np.concatenate([v["ids"] for v in views]), len(views), n),
+                                SHARED_VARIABLE)
     largest = np.argmax(np.bincount(labels))
     return [v for v, label in zip(views, labels) if label == largest]
 
 
-def _camera_facts(database: Path) -> dict:
-    """The photos' shared principal point and size, and their EXIF focal
-    length when it is plausible."""
-    pycolmap = require_pycolmap()
-    with pycolmap.Database.open(str(database)) as db:
-        cameras = db.read_all_cameras()
-    if not cameras:
-        return {}
-    camera = cameras[0]
-    facts = {"principal_point": (float(camera.principal_point_x), float(camera.principal_point_y)),
-             "image_size": (int(camera.width), int(camera.height))}
-    ratio = float(camera.focal_length) / max(camera.width, camera.height)
-    if camera.has_prior_focal_length and ratio in PLAUSIBLE_FOCAL:
-        facts["focal_px"] = float(camera.focal_length)
-    return facts
+def _trusted_focal(camera: colmap.Camera) -> float | None:
+    """The camera's focal length when it is known (EXIF, a calibration) and plausible."""
+    ratio = camera.focal / max(camera.width, camera.height)
+    return camera.focal if camera.prior_focal and ratio in PLAUSIBLE_FOCAL else None
 
 
-def read_database(path: str | Path, matches: str = "raw") -> list[dict]:
+def camera_views(views: list[dict], db: colmap.Database, path: Path) -> tuple[list[dict], list[str]]:
+    """Each view with its photo's camera: keypoints as a pinhole of square
+    pixels and no lens sees them (each camera's own model and parameters
+    taken out, as COLMAP wrote them), its principal point, image size and,
+    when known and plausible, focal length; with notes for the report.
+
+    One camera for all photos: its principal point, and its focal length.
+    Several: every photo's keypoints round the first camera's principal
+    point; at the first camera's focal length when every camera's is known
+    (a pinhole's image scales with its focal length), else each at its own,
+    the views then marked with their ``camera`` (one focal length each)."""
+    row = {name: k for k, name in enumerate(db.names)}
+    # COLMAP's extractor writes a camera per photo by default: photos whose
+    # cameras are alike (model, size, parameters) share one
+    alike: dict[tuple, colmap.Camera] = {}
+    of = []
+    for view in views:
+        camera = db.cameras[int(db.camera_of[row[view["name"]]])]
+        of.append(alike.setdefault((camera.model, camera.width, camera.height, camera.params,
+                                    camera.prior_focal), camera.check(str(path))))
+    cameras = {camera.camera_id: camera for camera in alike.values()}
+    first = of[0]
+    centre, notes = first.principal_point, []
+    trusted = [_trusted_focal(c) for c in cameras.values()]
+    several = len(cameras) > 1
+    common = several and all(f is not None for f in trusted)
+    out = []
+    for view, camera in zip(views, of):
+        focal = first.focal if common else camera.focal
+        plain = camera.is_pinhole and np.array_equal(camera.principal_point, centre) and focal == camera.focal
+        xy = view["xy"] if plain else camera.to_pinhole(view["xy"], focal, centre)
+        facts = {"xy": xy, "principal_point": tuple(float(v) for v in centre),
+                 "image_size": (camera.width, camera.height)}
+        if not several or common:
+            found = _trusted_focal(first)
+            if found is not None:
+                facts["focal_px"] = found
+        else:
+            facts["camera"] = camera.camera_id
+        out.append({**view, **facts})
+    if several:
+        notes.append(f"{len(cameras)} cameras: each photo's keypoints taken through its own camera; "
+                     + ("their known focal lengths brought to one" if common
+                        else "a focal length fitted per photo (not every camera's is known)"))
+    return out, notes
+
+
+def read_database(path: str | Path, matches: str = DEFAULT_MATCHES) -> list[dict]:
     """A COLMAP database's tracks as keypoint views (see the module's docstring)."""
     path = Path(path)
     MATCHES.check("matches", matches)
-    try:
-        tracks = match_tracks(path, matches)
-    except (RuntimeError, ValueError) as exc:  # pycolmap's: not a COLMAP database
-        raise MpeError(f"{path}: not a COLMAP database ({str(exc).splitlines()[0][:120]})") from None
+    db = colmap.read_database(path, matches)
+    tracks = tracks_of(db)
     if not tracks.names:
         raise MpeError(f"{path}: the database holds no images")
     if not len(tracks.track):
@@ -218,51 +198,47 @@ def read_database(path: str | Path, matches: str = "raw") -> list[dict]:
         raise MpeError(f"{path}: the database holds no {kind}")
     views = tracks.views()
     if len(views) < 2:
-        raise MpeError(f"{path}: {len(views)} of {len(tracks.names)} photos share {MIN_TRACKS} or more "
-                       "tracks with the others; reconstruction needs 2")
+        raise MpeError(f"{path}: {len(views)} of {len(tracks.names)} photos share {MIN_VIEW_POINTS} or "
+                       "more tracks with the others; reconstruction needs 2")
     tied = tied_views(views)
     notes = [] if len(tied) == len(views) else [
         f"{len(views) - len(tied)} photo(s) share too few tracks with the largest group of "
         f"{len(tied)}: left out ({', '.join(v['name'] for v in views if all(v is not t for t in tied))[:200]})"]
-    facts = _camera_facts(path)
-    return [{**view, **facts, "notes": notes, "matches": matches} for view in tied]
+    tied, camera_notes = camera_views(tied, db, path)
+    return [{**view, "notes": notes + camera_notes, "matches": matches} for view in tied]
 
 
-def _check_photos(folder: Path, names: list[str]) -> tuple[int, int]:
-    """Every photo readable and of one size; returns (width, height)."""
+def _check_photos(folder: Path, names: list[str]) -> None:
+    """Every photo readable."""
     from PIL import Image, UnidentifiedImageError
 
     if len(names) < 2:
         found = f"{len(names)} photo" + ("" if len(names) == 1 else "s")
         raise MpeError(f"{folder}: {found} ({', '.join(IMAGE_SUFFIXES)}); reconstruction needs 2 or more")
-    sizes = {}
     for name in names:
         try:
             with Image.open(folder / name) as image:
                 image.verify()
-                sizes.setdefault(image.size, name)
         except (UnidentifiedImageError, OSError, SyntaxError) as exc:
             raise MpeError(f"{folder / name}: not a readable image ({exc.__class__.__name__})") from None
-    if len(sizes) > 1:
-        (a, first), (b, other) = list(sizes.items())[:2]
-        raise MpeError(f"{folder}: photos of one camera and size are expected; {first} is "
-                       f"{a[0]}x{a[1]}, {other} is {b[0]}x{b[1]}")
-    return next(iter(sizes))
 
 
-def read_photos(folder: str | Path, matches: str = "raw", *, threads: int | None = None,
-                max_features: int = 8192) -> list[dict]:
-    """A folder of photos as keypoint views: SIFT features, matches and tracks by pycolmap."""
+def read_photos(folder: str | Path, matches: str = DEFAULT_MATCHES, *, threads: int | None = None,
+                max_features: int = 8192, seed: int = 0, scratch: str | Path | None = None) -> list[dict]:
+    """A folder of photos as keypoint views: SIFT features, matches and tracks
+    by COLMAP, a camera per image size and EXIF focal length (COLMAP's
+    extractor's rule), in a database under ``scratch`` (None: the system's
+    temporary folder); ``seed`` for the verification's RANSAC."""
     from mpe3d.solvers import threads as solver_threads
 
     folder = Path(folder)
     MATCHES.check("matches", matches)
     names = photo_names(folder)
     _check_photos(folder, names)
-    with tempfile.TemporaryDirectory(prefix="mpe3d-photos-") as scratch:
-        database = Path(scratch) / "database.db"
-        # raw matches need no geometric verification; verified ones are its inliers
-        extract_and_match(database, folder, names, camera_model="SIMPLE_RADIAL",
-                          threads=threads or solver_threads.count(), max_features=max_features,
-                          verify=matches == "verified")
+    verify = matches == "verified"  # raw matches need no geometric verification
+    need = colmap.scratch_bytes(len(names), max_features, colmap.matched_pairs(len(names)), verify)
+    with colmap.scratch(scratch, need, prefix="mpe3d-photos-") as work:
+        database = work / "database.db"
+        colmap.extract_and_match(database, folder, names, threads=threads or solver_threads.count(),
+                                 max_features=max_features, verify=verify, seed=seed)
         return read_database(database, matches)

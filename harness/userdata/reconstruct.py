@@ -29,7 +29,7 @@ from mpe3d.harness.userdata.observations import drop_missing, observations_from
 from mpe3d.harness.userdata.results import Result, reprojection_result, stress_result
 from mpe3d.options import (
     CAMERAS,
-    COLMAP_CAMERAS,
+    DEFAULT_MATCHES,
     OBJECTIVES,
     OUTLIER_THRESHOLDS,
     REPROJECTION_LOSSES,
@@ -63,6 +63,9 @@ class Problem:
     start: tuple | None = None  # (X, Cameras) from the file (Bundler, BAL), or None: ours
     image_size: tuple | None = None  # (width, height) of photos, when known
     focal: float | None = None  # a plausible EXIF focal length in pixels, when known
+    view_cameras: np.ndarray | None = None  # (K,) each photo's camera, photos of several; None: one
+    image_sizes: np.ndarray | None = None  # (K, 2) each photo's (width, height), with view_cameras
+    scratch: Path | None = None  # where COLMAP's databases go; None: the system's temporary folder
 
 
 def _check_random_state(random_state) -> None:
@@ -97,7 +100,7 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
             loss: str | None = None, random_state=0, objective: str | None = None,
             camera: str = "auto", missing=None,
             outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None,
-            start: str | None = None, matches: str = "raw") -> Problem:
+            start: str | None = None, matches: str = DEFAULT_MATCHES, scratch=None) -> Problem:
     """Read and check every input of :func:`reconstruct` without solving anything."""
     _check_choices(solver, loss, objective, camera, outlier_threshold, missing)
     if start is not None:  # None: the file's when it has one
@@ -108,7 +111,8 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
     if isinstance(views, (str, Path)):
         if is_photo_folder(views) and solver in (None, "bundle") and objective != "stress":
             _warm_during_extraction()
-        views = read_views(views, matches)
+        seed = random_state if not isinstance(random_state, np.random.Generator) else 0
+        views = read_views(views, matches, seed=int(seed), scratch=scratch)
     projections_source = "projections"
     if isinstance(projections, (str, Path)):
         projections_source, projections = str(projections), read_projections(projections)
@@ -149,9 +153,13 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
         start = "own"  # COLMAP starts from its own initial pair
     file_start = _file_start(views, obs, source, start, objective, camera, projections,
                              principal_point)
+    several = any("camera" in view for view in views)  # photos of several cameras, a focal each
     return Problem(obs, ids, solver, loss, random_state, objective, camera, projections,
                    float(outlier_threshold), principal_point, names, notes, file_start,
-                   _first(views, "image_size"), _first(views, "focal_px"))
+                   _first(views, "image_size"), _first(views, "focal_px"),
+                   np.array([view["camera"] for view in views]) if several else None,
+                   np.array([view["image_size"] for view in views]) if several else None,
+                   None if scratch is None else Path(scratch))
 
 
 def _first(views, key):
@@ -183,16 +191,12 @@ def _solver_for(objective: str, solver: str | None) -> str:
 
 
 def _check_colmap(source, camera, loss, projections, start, outlier_threshold):
-    """What COLMAP's mapper cannot be asked: it poses its own cameras from its
-    own start, with its own camera models, loss and filter."""
-    if camera not in COLMAP_CAMERAS:
-        raise MpeError(f"camera='{camera}': COLMAP has no affine camera; solver='colmap' takes "
-                       f"camera {', '.join(COLMAP_CAMERAS)}")
-    for flag, value, default in (("loss", loss, "l2"), ("start", start, None),
-                                 ("outlier_threshold", outlier_threshold, bundle.OUTLIER_THRESHOLD)):
-        if value not in (default, "own"):
-            raise MpeError(f"{flag}={value!r} is bundle adjustment's; COLMAP's mapper uses its "
-                           "own (a trivial loss, its 4 px filter, its own start)")
+    """What COLMAP's mapper cannot be asked (:data:`~mpe3d.solvers.sfm.colmap_mapper.COLMAP_TAKES`)."""
+    for flag, value in (("camera", camera), ("loss", loss), ("start", start or "own"),
+                        ("outlier_threshold", outlier_threshold)):
+        reason = colmap_mapper.refused(flag, value)
+        if reason is not None:
+            raise MpeError(f"{flag}={value!r}: {reason}")
     if projections is not None:
         raise MpeError(f"{source}: solver='colmap' estimates the cameras; known projections "
                        "are for solver='bundle'")
@@ -274,10 +278,12 @@ def _solve_reprojection(problem: Problem, tracks):
     if problem.solver == "colmap":
         from mpe3d.solvers import threads
 
+        several = problem.view_cameras is not None
         return colmap_mapper.colmap_map(tracks, camera=problem.camera,
                                         principal_point=problem.principal_point,
-                                        image_size=problem.image_size, focal=problem.focal,
-                                        seed=seed, threads=threads.count())
+                                        image_size=problem.image_sizes if several else problem.image_size,
+                                        focal=problem.focal, seed=seed, threads=threads.count(),
+                                        view_cameras=problem.view_cameras, scratch=problem.scratch)
     if problem.cameras is not None:
         return bundle.known_cameras(tracks, problem.cameras, loss=problem.loss,
                                     outlier_threshold=problem.outlier_threshold)
@@ -287,7 +293,7 @@ def _solve_reprojection(problem: Problem, tracks):
     return bundle.bundle_adjust(tracks, problem.camera, loss=problem.loss,
                                 outlier_threshold=problem.outlier_threshold,
                                 principal_point=problem.principal_point, focal=problem.focal,
-                                random_state=seed)
+                                shared_focal=problem.view_cameras is None, random_state=seed)
 
 
 def stop_notes(fit) -> list[str]:
@@ -304,7 +310,7 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
                 loss: str | None = None, random_state=0, objective: str | None = None,
                 camera: str = "auto", missing=None,
                 outlier_threshold: float = bundle.OUTLIER_THRESHOLD, principal_point=None,
-                start: str | None = None, matches: str = "raw") -> Result:
+                start: str | None = None, matches: str = DEFAULT_MATCHES, scratch=None) -> Result:
     """Rebuild a 3D cloud from user views.
 
     Parameters
@@ -355,6 +361,10 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
         Photos and COLMAP databases: the tracks join the matcher's raw
         matches (mpe3d finds the wrong ones itself) or only those COLMAP's
         geometric verification kept.
+    scratch : None or a folder, default None
+        Photos and solver="colmap": where COLMAP's database is written (its
+        free space checked against an estimate first); None: the system's
+        temporary folder.
     """
     return solve_problem(prepare(views, projections, solver, loss, random_state, objective, camera,
-                         missing, outlier_threshold, principal_point, start, matches))
+                         missing, outlier_threshold, principal_point, start, matches, scratch))

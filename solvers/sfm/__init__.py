@@ -9,7 +9,8 @@ fit rests on (:mod:`.support`), the camera models' starts and fits
 (:mod:`.camera_fits`), the rounds of wrong matches (:mod:`.outliers`) and the
 whole pipeline (:mod:`.bundle`, what ``objective="reprojection"`` runs).
 COLMAP's own mapper on the same tracks is a method beside it
-(:mod:`.colmap_mapper`); :mod:`.colmap_link` imports pycolmap for both. Its
+(:mod:`.colmap_mapper`); :mod:`.colmap` is the one module that calls
+pycolmap, for both and for the harness (photos, databases, models). Its
 compiled kernels sit beside them: :mod:`.kernels` (bundle adjustment's) and
 :mod:`.epipolar_kernels` (the two-view tests').
 
@@ -17,6 +18,6 @@ May import: the stress side of :mod:`mpe3d.solvers`, :mod:`mpe3d.options`
 and :mod:`mpe3d.errors`. The stress side never imports this package.
 """
 
-__all__ = ["adjust", "bundle", "camera_fits", "cameras", "colmap_link", "colmap_mapper", "epipolar",
+__all__ = ["adjust", "bundle", "camera_fits", "cameras", "colmap", "colmap_mapper", "epipolar",
            "epipolar_kernels", "incremental", "kernels", "outliers", "pinhole_start", "support", "tracks",
            "triangulation"]

@@ -20,22 +20,36 @@ camera.
 
 from __future__ import annotations
 
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 from mpe3d.errors import Unregistered
-from mpe3d.options import COLMAP_CAMERAS
+from mpe3d.options import COLMAP_CAMERAS, OUTLIER_THRESHOLD
+from mpe3d.solvers.sfm import colmap
 from mpe3d.solvers.sfm.bundle import BundleResult, place_unplaced
 from mpe3d.solvers.sfm.cameras import radial_cameras
-from mpe3d.solvers.sfm.colmap_link import require_pycolmap
 from mpe3d.solvers.sfm.tracks import Tracks
 
 # COLMAP's camera model for each of ours it takes (mpe3d.options.COLMAP_CAMERAS)
 COLMAP_MODELS = {"auto": "SIMPLE_RADIAL", "radial": "SIMPLE_RADIAL", "perspective": "SIMPLE_PINHOLE"}
-MIN_REGISTERED = 2  # views a model needs to be one
+# What COLMAP's mapper cannot be asked: it poses its own cameras from its own
+# start, with its own camera models, loss and filter. Each option: the values
+# it takes, and what COLMAP has of its own instead.
+COLMAP_TAKES = {"camera": (COLMAP_CAMERAS.names, "camera models (no affine one)"),
+                "loss": (("l2",), "loss (a trivial one)"),
+                "start": (("own",), "start (its initial pair)"),
+                "outlier_threshold": ((OUTLIER_THRESHOLD,), "filter (4 px)")}
+
+
+def refused(option: str, value) -> str | None:
+    """Why COLMAP's mapper cannot be asked ``option=value``; None when it can."""
+    allowed, own = COLMAP_TAKES[option]
+    if value in allowed:
+        return None
+    kind = "COLMAP has no affine camera" if option == "camera" else "bundle adjustment's"
+    return f"{kind}; COLMAP's mapper has its own {own} and takes {option} {' or '.join(map(str, allowed))}"
 
 
 def track_matches(tracks: Tracks) -> tuple[np.ndarray, np.ndarray]:
@@ -64,38 +78,39 @@ def track_matches(tracks: Tracks) -> tuple[np.ndarray, np.ndarray]:
     return pairs[keep], rows[keep]
 
 
-def _write_database(pycolmap, path: Path, tracks: Tracks, keypoint: np.ndarray, camera, names):
-    """One camera and rig, an image and frame per view, its keypoints, the raw matches."""
-    with pycolmap.Database.open(str(path)) as db:
-        camera.camera_id = db.write_camera(camera)
-        rig = pycolmap.Rig()
-        rig.add_ref_sensor(camera.sensor_id)
-        rig_id = db.write_rig(rig)
-        image_ids = []
-        for k, name in enumerate(names):
-            image_id = db.write_image(pycolmap.Image(name=name, camera_id=camera.camera_id))
-            frame = pycolmap.Frame()
-            frame.rig_id = rig_id
-            frame.add_data_id(pycolmap.data_t(camera.sensor_id, image_id))
-            frame_id = db.write_frame(frame)
-            image = db.read_image(image_id)
-            image.frame_id = frame_id
-            db.update_image(image)
-            db.write_keypoints(image_id, tracks.z[tracks.view == k].astype(np.float32))
-            image_ids.append(image_id)
-        pairs, rows = track_matches(tracks)
-        order = np.lexsort((pairs[:, 1], pairs[:, 0]))
-        pairs, rows = pairs[order], rows[order]
-        cut = np.flatnonzero(np.any(np.diff(pairs, axis=0) != 0, axis=1)) + 1
-        for chunk_pairs, chunk_rows in zip(np.split(pairs, cut), np.split(rows, cut)):
-            if len(chunk_pairs):
-                a, b = chunk_pairs[0]
-                db.write_matches(image_ids[a], image_ids[b], keypoint[chunk_rows].astype(np.uint32))
-    return image_ids
+def _database_parts(tracks: Tracks, keypoint: np.ndarray):
+    """Each view's keypoints, and the raw matches of each pair of views."""
+    keypoints = [tracks.z[tracks.view == k] for k in range(tracks.n_views)]
+    pairs, rows = track_matches(tracks)
+    order = np.lexsort((pairs[:, 1], pairs[:, 0]))
+    pairs, rows = pairs[order], rows[order]
+    cut = np.flatnonzero(np.any(np.diff(pairs, axis=0) != 0, axis=1)) + 1
+    chunks = [(p[0], keypoint[r]) for p, r in zip(np.split(pairs, cut), np.split(rows, cut)) if len(p)]
+    return keypoints, np.array([c[0] for c in chunks], dtype=np.int64).reshape(-1, 2), [c[1] for c in chunks]
+
+
+def _cameras(tracks: Tracks, camera: str, c, image_size, focal, view_cameras):
+    """COLMAP's cameras for the views and each view's camera: one shared, or
+    one per group of ``view_cameras`` (then ``image_size`` is per view)."""
+    hi = tracks.z.max(axis=0)
+    groups = np.zeros(tracks.n_views, dtype=np.int64) if view_cameras is None \
+        else np.unique(np.asarray(view_cameras), return_inverse=True)[1].astype(np.int64)
+    sizes = np.atleast_2d(np.asarray(image_size, dtype=float)) if image_size is not None else None
+    out = []
+    for g in range(int(groups.max()) + 1):
+        if sizes is None:
+            width, height = np.ceil(np.maximum(2 * c, hi + 1)).astype(int)
+        else:
+            width, height = sizes[np.flatnonzero(groups == g)[0] if len(sizes) > 1 else 0].astype(int)
+        prior = focal is not None and view_cameras is None
+        f = float(focal) if prior else 1.2 * max(width, height)
+        out.append(colmap.simple_camera(COLMAP_MODELS[camera], width, height, f, c, prior, camera_id=g + 1))
+    return out, groups
 
 
 def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, image_size=None,
-               focal: float | None = None, seed: int = 0, threads: int = 1) -> BundleResult:
+               focal: float | None = None, seed: int = 0, threads: int = 1,
+               view_cameras=None, scratch: Path | None = None) -> BundleResult:
     """COLMAP's geometric verification and incremental mapper on ``tracks``.
 
     Parameters
@@ -106,97 +121,89 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
         auto and radial: SIMPLE_RADIAL (COLMAP's default); perspective: SIMPLE_PINHOLE.
     principal_point : (2,) or None, default None
         Fixed, as COLMAP keeps it; None: the centre of the keypoints' bounding box.
-    image_size : (width, height) or None, default None
-        None: twice the principal point.
+    image_size : (width, height), (K, 2) with ``view_cameras``, or None, default None
+        None: what holds the keypoints round the principal point.
     focal : float or None, default None
         A trusted focal length in pixels (a plausible EXIF one): COLMAP's
         prior. None starts it at 1.2 times the larger image side, as COLMAP does.
     seed : int, default 0
         RANSAC's and the mapper's random seed.
     threads : int, default 1
-        COLMAP's thread count for verification and mapping.
+        COLMAP's thread count for verification and mapping (one repeats a
+        run bit for bit: :mod:`.colmap`).
+    view_cameras : (K,) ints or None, default None
+        Each view's camera, for photos of several cameras (each its own focal
+        length, started as COLMAP does); None: one camera for all.
+    scratch : folder or None, default None
+        Where COLMAP's database goes (its space checked first); None: the
+        system's temporary folder.
 
     ``seconds`` holds the time of verification and of mapping.
     """
     COLMAP_CAMERAS.check("camera", camera)
-    pycolmap = require_pycolmap()
     lo, hi = tracks.z.min(axis=0), tracks.z.max(axis=0)
     c = np.asarray((lo + hi) / 2 if principal_point is None else principal_point, dtype=float)
-    width, height = (np.ceil(np.maximum(2 * c, hi + 1)).astype(int) if image_size is None
-                     else (int(image_size[0]), int(image_size[1])))
-    prior = focal is not None
-    f = float(focal) if prior else 1.2 * max(width, height)
-    model = COLMAP_MODELS[camera]
-    params = [f, c[0], c[1]] + ([0.0] if model == "SIMPLE_RADIAL" else [])
-    cam = pycolmap.Camera(model=model, width=int(width), height=int(height), params=params)
-    cam.has_prior_focal_length = prior
+    cameras, groups = _cameras(tracks, camera, c, image_size, focal, view_cameras)
     keypoint = np.zeros(len(tracks.view), dtype=np.int64)  # each observation's index in its view
     for k in range(tracks.n_views):
         rows = np.flatnonzero(tracks.view == k)
         keypoint[rows] = np.arange(len(rows))
     names = [f"view{k:05d}" for k in range(tracks.n_views)]
     seconds = {}
-    with tempfile.TemporaryDirectory(prefix="mpe3d-colmap-") as scratch:
-        scratch = Path(scratch)
-        database = scratch / "database.db"
-        _write_database(pycolmap, database, tracks, keypoint, cam, names)
-        pycolmap.set_random_seed(seed)
+    parts = _database_parts(tracks, keypoint)
+    # keypoints, and each match twice (raw, then its verified inliers)
+    need = len(tracks.view) * colmap.FEATURE_BYTES + sum(map(len, parts[2])) * 2 * colmap.MATCH_BYTES
+    with colmap.scratch(scratch, need) as folder:
+        database = folder / "database.db"
+        colmap.write_database(database, names, cameras, groups, *parts)
         start = time.perf_counter()
-        verifier = pycolmap.GeometricVerifierOptions()
-        verifier.num_threads = threads
-        geometry = pycolmap.TwoViewGeometryOptions()
-        geometry.ransac.random_seed = seed
-        pycolmap.geometric_verification(str(database), verifier_options=verifier,
-                                        two_view_geometry_options=geometry)
+        colmap.verify_matches(database, threads=threads, seed=seed)
         seconds["verify_s"] = time.perf_counter() - start
-        start = time.perf_counter()
-        options = pycolmap.IncrementalPipelineOptions()
-        options.num_threads = threads
-        options.random_seed = seed
-        options.extract_colors = False
-        (scratch / "sparse").mkdir()
-        models = pycolmap.incremental_mapping(str(database), str(scratch), str(scratch / "sparse"),
-                                              options=options)
-        seconds["map_s"] = time.perf_counter() - start
-    best = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()), default=None)
-    if best is None or best.num_reg_images() < MIN_REGISTERED:
+        model = colmap.incremental_mapping(database, folder, threads=threads, seed=seed,
+                                           scratch_dir=folder / "sparse")
+    if model is None or len(model.images) < colmap.MIN_REGISTERED:
         raise Unregistered("COLMAP registered no two views: its geometric verification or its "
-                       "initial pair found too few inlier matches among the tracks")
-    return _result(best, tracks, keypoint, names, camera, c, len(models), seconds)
+                           "initial pair found too few inlier matches among the tracks")
+    seconds.update(model.seconds)
+    return _result(model, tracks, keypoint, names, camera, c, groups, seconds)
 
 
-def _result(model, tracks: Tracks, keypoint, names, camera, c, n_models, seconds) -> BundleResult:
+def _result(model: colmap.Model, tracks: Tracks, keypoint, names, camera, c, groups,
+            seconds) -> BundleResult:
     """COLMAP's model in the tracks' terms (see :func:`colmap_map`)."""
-    index = {name: k for k, name in enumerate(names)}
     K, N = tracks.n_views, tracks.n_points
     R, t = np.tile(np.eye(3), (K, 1, 1)), np.zeros((K, 3))
     registered = np.zeros(K, dtype=bool)
     point3d = np.full(len(tracks.view), -1, dtype=np.int64)  # each observation's COLMAP point
-    for image_id in model.reg_image_ids():
-        image = model.images[image_id]
-        k = index[image.name]
-        pose = image.cam_from_world()
-        R[k], t[k], registered[k] = pose.rotation.matrix(), pose.translation, True
-        ids = np.array([p.point3D_id if p.has_point3D() else -1 for p in image.points2D], dtype=np.int64)
+    focal, k1 = np.zeros(K), np.zeros(K)
+    for k, name in enumerate(names):
+        image = model.images.get(name)
+        params = model.cameras[int(groups[k]) + 1].params
+        focal[k], k1[k] = params[0], params[3] if len(params) > 3 else 0.0
+        if image is None:
+            continue
+        R[k], t[k], registered[k] = image.rotation, image.translation, True
         rows = np.flatnonzero(tracks.view == k)
-        point3d[rows] = ids[keypoint[rows]]
-    X, placed = _track_points(model, tracks, point3d)
-    params = np.asarray(next(iter(model.cameras.values())).params, dtype=float)
-    k1 = params[3] if len(params) > 3 else 0.0
-    cameras = radial_cameras(R, t, np.full(K, params[0]), np.array([k1, 0.0]), c, shared=True)
-    chosen = np.full(N, -1, dtype=np.int64)
-    chosen[placed] = X[1][placed]
+        point3d[rows] = image.point3d[keypoint[rows]]
+    chosen = majority_points(tracks.point, point3d, N)
+    placed = chosen >= 0
+    X = np.zeros((N, 3))
+    X[placed] = model.point_of(chosen[placed])
+    shared = groups.max() == 0
+    cameras = radial_cameras(R, t, focal[:1] if shared else focal,
+                             np.array([k1[0], 0.0]) if shared else np.column_stack([k1, np.zeros(K)]),
+                             c, shared=bool(shared))
     kept = (point3d >= 0) & (point3d == chosen[tracks.point]) & registered[tracks.view]
     dropped = ~kept & placed[tracks.point] & registered[tracks.view]
-    points = place_unplaced(X[0], cameras, tracks, placed, kept | (~placed[tracks.point]
-                                                                    & registered[tracks.view]))
+    points = place_unplaced(X, cameras, tracks, placed, kept | (~placed[tracks.point]
+                                                                & registered[tracks.view]))
     residuals = cameras.project(points, tracks.view, tracks.point) - tracks.z
     residuals[~registered[tracks.view]] = np.nan
     counted = kept & placed[tracks.point]
     rms = float(np.sqrt(np.mean(np.sum(residuals[counted] ** 2, axis=1)))) if counted.any() else np.nan
     return BundleResult(points=points, cameras=cameras, residuals=residuals, dropped=dropped,
                         counted=counted, converged=True, iterations=0,
-                        termination=f"COLMAP's incremental mapper ({n_models} model(s), the "
+                        termination=f"COLMAP's incremental mapper ({model.models} model(s), the "
                                     f"largest kept)",
                         affine_rms=float("nan"), camera=camera if camera != "auto" else "radial",
                         rms_by_camera={"radial" if camera == "auto" else camera: rms},
@@ -204,20 +211,18 @@ def _result(model, tracks: Tracks, keypoint, names, camera, c, n_models, seconds
                         seconds=seconds)
 
 
-def _track_points(model, tracks: Tracks, point3d: np.ndarray):
-    """((N, 3) points, (N,) their COLMAP ids), and (N,) placed: each track at the
-    COLMAP point most of its keypoints went to."""
-    N = tracks.n_points
-    X, chosen = np.zeros((N, 3)), np.full(N, -1, dtype=np.int64)
+def majority_points(track: np.ndarray, point3d: np.ndarray, n_tracks: int) -> np.ndarray:
+    """(n_tracks,) each track's COLMAP point: the point3D id most of its
+    keypoints went to (``point3d`` per observation, -1 for none; ties to the
+    lower id), -1 where none went anywhere."""
+    chosen = np.full(n_tracks, -1, dtype=np.int64)
     has = point3d >= 0
     if not has.any():
-        return (X, chosen), np.zeros(N, dtype=bool)
-    pairs, votes = np.unique(np.column_stack([tracks.point[has], point3d[has]]), axis=0,
+        return chosen
+    pairs, votes = np.unique(np.column_stack([np.asarray(track)[has], point3d[has]]), axis=0,
                              return_counts=True)
     order = np.lexsort((-votes, pairs[:, 0]))  # per track, the most votes first
     pairs = pairs[order]
     first = np.r_[True, pairs[1:, 0] != pairs[:-1, 0]]
-    for track, pid in pairs[first]:
-        chosen[track] = pid
-        X[track] = model.points3D[int(pid)].xyz
-    return (X, chosen), chosen >= 0
+    chosen[pairs[first, 0]] = pairs[first, 1]
+    return chosen

@@ -30,9 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mpe3d.solvers.degenerate import shared_points
+from mpe3d.solvers.sfm import colmap
 from mpe3d.solvers.sfm.adjust import LMOptions, adjust
 from mpe3d.solvers.sfm.cameras import Cameras
-from mpe3d.solvers.sfm.colmap_link import require_pycolmap
 from mpe3d.solvers.sfm.support import MIN_RAY_ANGLE
 from mpe3d.solvers.sfm.tracks import Tracks
 from mpe3d.solvers.sfm.triangulation import dlt_rows, least_squares_points, ray_directions, widest_angles
@@ -60,10 +61,9 @@ class PinholeStart:
     narrow: np.ndarray  # (N,) bool: unplaced only because their rays meet too narrowly
 
 
-def _colmap_camera(pycolmap, focal, c, box):
+def _colmap_camera(focal, c, box) -> colmap.Camera:
     """COLMAP's camera of ours, ``box`` (width, height) pixels: :func:`_box`."""
-    return pycolmap.Camera(model="SIMPLE_PINHOLE", width=int(box[0]), height=int(box[1]),
-                           params=[focal, c[0], c[1]])
+    return colmap.simple_camera("SIMPLE_PINHOLE", box[0], box[1], focal, c)
 
 
 def _box(tracks, c) -> tuple[int, int]:
@@ -81,11 +81,10 @@ def _cameras(R, t, focal, c) -> Cameras:
 def pinhole_start(tracks: Tracks, principal_point, focal: float | None = None,
                   seed: int = 0) -> PinholeStart | None:
     """The start of the module doc, or None when no pair of views makes one."""
-    pycolmap = require_pycolmap()
     c = np.asarray(principal_point, dtype=float)
     f = float(focal) if focal is not None else 1.2 * float(np.max(2 * np.abs(tracks.z - c)))
     box = _box(tracks, c)
-    state = _initial(pycolmap, tracks, f, c, box, seed)
+    state = _initial(tracks, f, c, box, seed)
     if state is None:
         return None
     failed: set[int] = set()
@@ -94,7 +93,7 @@ def pinhole_start(tracks: Tracks, principal_point, focal: float | None = None,
         k = _next_view(tracks, state, failed)
         if k is None:
             break
-        if not _resect(pycolmap, tracks, state, k, box, seed):
+        if not _resect(tracks, state, k, box, seed):
             failed.add(k)
             continue
         _triangulate(tracks, state)
@@ -106,38 +105,32 @@ def pinhole_start(tracks: Tracks, principal_point, focal: float | None = None,
     return state
 
 
-def _initial(pycolmap, tracks, f, c, box, seed) -> PinholeStart | None:
+def _initial(tracks, f, c, box, seed) -> PinholeStart | None:
     K, N = tracks.n_views, tracks.n_points
-    seen = np.zeros((K, N), dtype=bool)
-    seen[tracks.view, tracks.point] = True
-    shared = seen.astype(np.int32) @ seen.T.astype(np.int32)
+    shared = shared_points(tracks.view, tracks.point, K, N)
     np.fill_diagonal(shared, 0)
     a_idx, b_idx = np.triu_indices(K, 1)
     order = np.argsort(-shared[a_idx, b_idx], kind="stable")[:INIT_CANDIDATES]
-    camera = _colmap_camera(pycolmap, f, c, box)
-    ransac = pycolmap.RANSACOptions()
-    ransac.max_error = MAX_ERROR
-    ransac.random_seed = seed
-    ransac.max_num_trials = RANSAC_TRIALS
+    camera = _colmap_camera(f, c, box)
     best, best_score = None, 0.0
     for a, b in zip(a_idx[order], b_idx[order]):
         # a pair's score is at most the points it shares: none after this can win
         if shared[a, b] < MIN_INLIERS or shared[a, b] <= best_score:
             break
-        common = np.flatnonzero(seen[a] & seen[b])
+        common = np.intersect1d(tracks.point[tracks.view == a], tracks.point[tracks.view == b])
         za, zb = _rows_of(tracks, a, common), _rows_of(tracks, b, common)
         # the essential matrix from E_MATCHES evenly spread matches at most, its
         # inliers among all (11 photos of 3,000 px: 8 pairs of ~4,000, 6.8 s)
         some = np.linspace(0, len(common) - 1, min(len(common), E_MATCHES)).round().astype(int)
-        found = pycolmap.estimate_essential_matrix(tracks.z[za[some]], tracks.z[zb[some]], camera, camera,
-                                                   ransac)
-        if found is None or found["num_inliers"] < MIN_INLIERS * len(some) / len(common):
+        found = colmap.essential_matrix(tracks.z[za[some]], tracks.z[zb[some]], camera, max_error=MAX_ERROR,
+                                        seed=seed, trials=RANSAC_TRIALS)
+        if found is None or found[3] < MIN_INLIERS * len(some) / len(common):
             continue
-        pose = found["cam2_from_cam1"]
-        inliers = common[_on_epipolar_lines(np.asarray(found["E"]), tracks.z[za], tracks.z[zb], f, c)]
+        E, R_b, t_b, _ = found
+        inliers = common[_on_epipolar_lines(E, tracks.z[za], tracks.z[zb], f, c)]
         if len(inliers) < MIN_INLIERS:
             continue
-        state = _pair_state(tracks, a, b, pose, inliers, f, c)
+        state = _pair_state(tracks, a, b, (R_b, t_b), inliers, f, c)
         if state.placed.sum() < MIN_INLIERS:
             continue
         rays, point, lines = _rays(tracks, state, np.flatnonzero(state.placed))
@@ -173,7 +166,7 @@ def _rows_of(tracks, k, points):
 def _pair_state(tracks, a, b, pose, inliers, f, c) -> PinholeStart:
     K, N = tracks.n_views, tracks.n_points
     R, t = np.tile(np.eye(3), (K, 1, 1)), np.zeros((K, 3))
-    R[b], t[b] = np.asarray(pose.rotation.matrix()), np.asarray(pose.translation)
+    R[b], t[b] = pose
     registered = np.zeros(K, dtype=bool)
     registered[[a, b]] = True
     state = PinholeStart(np.zeros((N, 3)), _cameras(R, t, f, c), np.zeros(N, dtype=bool), registered,
@@ -240,24 +233,18 @@ def _next_view(tracks, state, failed) -> int | None:
     return k if counts[k] >= MIN_RESECTION else None
 
 
-def _resect(pycolmap, tracks, state, k, box, seed) -> bool:
+def _resect(tracks, state, k, box, seed) -> bool:
     rows = np.flatnonzero((tracks.view == k) & state.placed[tracks.point])
-    camera = _colmap_camera(pycolmap, float(state.cameras.focal()[0]), state.cameras.principal_point, box)
-    estimation = pycolmap.AbsolutePoseEstimationOptions()
-    estimation.ransac.max_error = MAX_ERROR
-    estimation.ransac.random_seed = seed
-    estimation.ransac.max_num_trials = RANSAC_TRIALS
-    found = pycolmap.estimate_and_refine_absolute_pose(tracks.z[rows], state.X[tracks.point[rows]], camera,
-                                                       estimation)
-    if found is None or found["num_inliers"] < MIN_RESECTION:
+    camera = _colmap_camera(float(state.cameras.focal()[0]), state.cameras.principal_point, box)
+    found = colmap.absolute_pose(tracks.z[rows], state.X[tracks.point[rows]], camera, max_error=MAX_ERROR,
+                                 seed=seed, trials=RANSAC_TRIALS)
+    if found is None or found[3] < MIN_RESECTION:
         return False
-    pose = found["cam_from_world"]
     cameras = state.cameras.reanchored()
-    cameras.rotations[k] = np.asarray(pose.rotation.matrix())
-    cameras.params[k, 3:6] = np.asarray(pose.translation)
+    cameras.rotations[k], cameras.params[k, 3:6], inliers, _ = found
     state.cameras = cameras
     state.registered[k] = True
-    state.kept[rows[np.asarray(found["inlier_mask"], dtype=bool)]] = True
+    state.kept[rows[inliers]] = True
     return True
 
 

@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 from mpe3d.errors import MpeError, suggest
 
-__all__ = ["CAMERAS", "CAMERA_MODELS", "COLMAP_CAMERAS", "Choice", "INITS", "Interval", "MATCHES", "OBJECTIVES",
-           "OUTLIER_THRESHOLD", "OUTLIER_THRESHOLDS", "PROJECTIONS", "REPROJECTION_LOSSES", "REPROJECTION_SOLVERS",
-           "STARTS", "STRESS_LOSSES"]
+__all__ = ["CAMERAS", "CAMERA_MODELS", "COLMAP_CAMERAS", "Choice", "DEFAULT_MATCHES", "INITS", "Interval", "MATCHES",
+           "OBJECTIVES", "OUTLIER_THRESHOLD", "OUTLIER_THRESHOLDS", "PROJECTIONS", "REPROJECTION_LOSSES",
+           "REPROJECTION_SOLVERS", "STARTS", "STRESS_LOSSES"]
 
 
 @dataclass(frozen=True)
@@ -112,6 +112,7 @@ COLMAP_CAMERAS = Choice(("auto", "radial", "perspective"))
 # Which matches of a COLMAP database (or of photos) make the tracks: the raw
 # ones of the matcher, or those its two-view geometric verification kept.
 MATCHES = Choice(("raw", "verified"))
+DEFAULT_MATCHES = "raw"  # every reader's and the command line's: the solve finds the wrong ones
 # Where bundle adjustment starts: mpe3d's own start, or a Bundler/BAL file's.
 STARTS = Choice(("own", "file"))
 # Observations beyond this many robust sigmas are wrong matches: real tracks

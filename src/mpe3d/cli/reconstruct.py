@@ -11,6 +11,7 @@ from pathlib import Path
 from mpe3d.errors import MpeError
 from mpe3d.options import (
     CAMERAS,
+    DEFAULT_MATCHES,
     MATCHES,
     OBJECTIVES,
     OUTLIER_THRESHOLD,
@@ -35,7 +36,7 @@ def add_parser(sub) -> None:
                          "pycolmap), matched 2D keypoints (CSV view,point,x,y; NPZ; JSON; a folder of "
                          ".npz per view; COLMAP, Bundler, BAL, VGG files) or per-view distance matrices, "
                          "check them, and write the 3D cloud with each point's id.")
-    rec.add_argument("input", metavar="INPUT", help="a folder of photos (one camera), a COLMAP "
+    rec.add_argument("input", metavar="INPUT", help="a folder of photos (any cameras), a COLMAP "
                      "database (database.db) or model folder, a .csv, .npz or .json file, a folder "
                      "of .npz, a Bundler .out or BAL problem file, or a VGG nview-corners table (its "
                      ".corners files beside it)")
@@ -73,9 +74,14 @@ def add_parser(sub) -> None:
                      "(default bundle: mpe3d's bundle adjustment; colmap: COLMAP's geometric "
                      "verification and incremental mapper on the same tracks). Stress: refine "
                      "(default) or any other of `mpe3d solvers`, a plug-in's (--plugin) included")
-    rec.add_argument("--matches", default="raw", choices=MATCHES.names,
-                     help="photos and COLMAP databases: track the matcher's raw matches (default; "
-                     "wrong ones are found by the solve) or only the geometrically verified ones")
+    rec.add_argument("--matches", default=DEFAULT_MATCHES, choices=MATCHES.names,
+                     help=f"photos and COLMAP databases: track the matcher's raw matches (default "
+                     f"{DEFAULT_MATCHES}; wrong ones are found by the solve) or only the geometrically "
+                     "verified ones")
+    rec.add_argument("--scratch", metavar="DIR",
+                     help="photos and --solver colmap: the folder COLMAP's database is written to "
+                     "(default: the system's temporary folder); its free space is checked first "
+                     "against an estimate (about 1.2 MB a photo at 8,192 features, plus the matches)")
     rec.add_argument("--loss", choices=REPROJECTION_LOSSES.names,
                      help="l2, or a robust loss: huber, soft_l1 (cauchy: reprojection only); default "
                      "soft_l1 for bundle adjustment of photos' and COLMAP databases' tracks, l2 otherwise")
@@ -107,7 +113,8 @@ def cmd_reconstruct(args) -> int:
                           loss=args.loss, random_state=args.seed, objective=args.objective,
                           camera=args.camera, missing=args.missing,
                           outlier_threshold=args.outlier_threshold,
-                          principal_point=args.principal_point, start=args.start, matches=args.matches)
+                          principal_point=args.principal_point, start=args.start, matches=args.matches,
+                          scratch=args.scratch)
     check_ids_fit(out, problem.ids)
     if solution:
         bundler.check_solution_out(out, problem)

@@ -12,7 +12,7 @@ from mpe3d.harness.userdata import colmap_model
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.harness.userdata.results import ViewCamera
 from mpe3d.reports.claims import FAILS, HOLDS, colmap_fails_below
-from mpe3d.solvers.sfm import colmap_link
+from mpe3d.solvers.sfm import colmap
 from tests.helpers import close_up_keypoints, similarity_rms
 
 pycolmap = pytest.importorskip("pycolmap")
@@ -132,7 +132,7 @@ def test_distorted_cameras_are_taken_to_one_pinhole(tmp_path, rng):
     (lambda d: (d / "images.bin").unlink(), "an incomplete COLMAP model: images.bin missing"),
     (lambda d: (d / "points3D.bin").write_bytes(b"\x07" * 11), "points3D.bin: damaged (11 bytes"),
     (lambda d: (d / "images.bin").write_bytes((d / "images.bin").read_bytes()[:-9]),
-     "cannot read the COLMAP model"),
+     "COLMAP cannot read the model"),
     (lambda d: [p.unlink() for p in d.iterdir()] and (d / "cameras.txt").write_text("# x\n"),
      "an incomplete COLMAP model"),
 ])
@@ -191,7 +191,7 @@ def test_pycolmap_missing_is_one_line(monkeypatch):
 
     monkeypatch.setattr(builtins, "__import__", no_pycolmap)
     with pytest.raises(MpeError, match="pip install pycolmap"):
-        colmap_link.require_pycolmap()
+        colmap.version()
 
 
 def test_the_colmap_keys_are_checked_and_leave_older_runs_hashes_alone():

@@ -11,7 +11,7 @@ from mpe3d.harness.scene import rendering, shapes
 from mpe3d.harness.userdata import photos
 from mpe3d.harness.userdata.formats import read_points
 from mpe3d.harness.userdata.reconstruct import reconstruct
-from mpe3d.solvers.sfm import colmap_mapper
+from mpe3d.solvers.sfm import colmap, colmap_mapper
 from mpe3d.solvers.sfm.tracks import Tracks
 from tests.helpers import close_up_keypoints, similarity_rms
 
@@ -34,7 +34,7 @@ def shoot(tmp_path_factory):
 def database(shoot, tmp_path_factory):
     folder, _ = shoot
     path = tmp_path_factory.mktemp("db") / "database.db"
-    photos.extract_and_match(path, folder, photos.photo_names(folder), camera_model="SIMPLE_RADIAL")
+    colmap.extract_and_match(path, folder, photos.photo_names(folder))
     return path
 
 
@@ -115,9 +115,8 @@ def test_an_exif_focal_length_is_kept_only_when_plausible(shoot, tmp_path):
     for focal_35mm in (40, 212):  # a normal lens; 5.9 times the image side, a stale tag
         photo_dir = _with_exif(folder, tmp_path / f"f{focal_35mm}", focal_35mm)
         database = tmp_path / f"f{focal_35mm}.db"
-        photos.extract_and_match(database, photo_dir, photos.photo_names(photo_dir),
-                                    camera_model="SIMPLE_RADIAL")
-        facts[focal_35mm] = photos._camera_facts(database)
+        colmap.extract_and_match(database, photo_dir, photos.photo_names(photo_dir))
+        facts[focal_35mm] = photos.read_database(database)[0]
     assert facts[40]["focal_px"] / 320 in photos.PLAUSIBLE_FOCAL
     assert "focal_px" not in facts[212]
 
@@ -148,8 +147,15 @@ def test_track_matches_link_every_pair_of_a_tracks_observations():
 
 def test_colmap_refuses_what_it_cannot_be_asked():
     views = close_up_keypoints(n=60, views=4)
-    for kwargs, message in (({"camera": "scaled"}, "COLMAP has no affine camera"),
-                            ({"loss": "huber"}, "loss='huber' is bundle adjustment's"),
+    for kwargs, message in (({"camera": "scaled"}, "camera='scaled': COLMAP has no affine camera; COLMAP's mapper "
+                                                   "has its own camera models .no affine one. and takes camera "
+                                                   "auto or radial or perspective"),
+                            ({"loss": "huber"}, "loss='huber': bundle adjustment's; COLMAP's mapper has its own "
+                                                "loss .a trivial one. and takes loss l2"),
+                            ({"start": "file"}, "start='file': bundle adjustment's; .* takes start own"),
+                            ({"outlier_threshold": 5.0}, "outlier_threshold=5.0: bundle adjustment's; COLMAP's "
+                                                         "mapper has its own filter .4 px. and takes "
+                                                         "outlier_threshold 20.0"),
                             ({"objective": "stress"}, "minimises the reprojection error"),
                             ({"projections": np.tile(np.eye(3)[:2], (4, 1, 1))}, "known projections")):
         with pytest.raises(MpeError, match=message):
@@ -168,11 +174,6 @@ def _one(folder, shoot):
     Image.fromarray(np.zeros((64, 64), dtype=np.uint8)).save(folder / "only.png")
 
 
-def _sizes(folder, shoot):
-    Image.fromarray(np.zeros((64, 64), dtype=np.uint8)).save(folder / "a.png")
-    Image.fromarray(np.zeros((64, 80), dtype=np.uint8)).save(folder / "b.png")
-
-
 def _blank(folder, shoot):  # nothing to match: no two photos share a keypoint
     rng = np.random.default_rng(0)
     for k in range(3):
@@ -183,7 +184,6 @@ def _blank(folder, shoot):  # nothing to match: no two photos share a keypoint
     (lambda folder, shoot: None, "a folder input needs photos"),
     (_unreadable, "not a readable image"),
     (_one, "1 photo"),
-    (_sizes, "photos of one camera and size are expected"),
     (_blank, "holds no matches|share 3 or more tracks"),
 ])
 def test_bad_photo_folders_get_one_line_and_nothing_written(tmp_path, capsys, shoot, make, message):
