@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from mpe3d import solvers
-from mpe3d.errors import MpeError
+from mpe3d.errors import Unregistered
 from mpe3d.harness.experiment import colmap_sfm
 from mpe3d.harness.experiment.config import RunConfig
 from mpe3d.harness.experiment.result import RunResult, short_number
@@ -33,6 +33,7 @@ from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.scene.visibility import SELF_HIT_TOLERANCE
 from mpe3d.harness.userdata import photos
 from mpe3d.options import OUTLIER_THRESHOLD
+from mpe3d.solvers.sfm import colmap
 from mpe3d.solvers.sfm.stages import AUTO_RATIO, shows_perspective
 from mpe3d.solvers.sfm.support import median_radii
 
@@ -134,7 +135,7 @@ def _track_scores(tracks, sfm, to_mesh, truth, principal_point, rng) -> tuple[di
         start = time.perf_counter()
         try:
             result = _fed_to(method, views, principal_point, pinhole)
-        except MpeError as exc:
+        except Unregistered as exc:  # the method's own outcome; any other error fails the run
             notes.append(f"tracks -> {method}: {exc}")
             continue
         out[f"tracks_{method}_s"] = time.perf_counter() - start
@@ -192,7 +193,7 @@ def run(config: RunConfig, streams) -> RunResult:
                   registered_share=len(sfm.registered) / len(names), colmap_models=sfm.models,
                   colmap_points=len(sfm.points), points_kept=len(truth))
     facts = {"colmap_version": colmap_sfm.colmap_version(),
-             "matching": photos.matching_for(len(names), config["images.matching"]), "warnings": []}
+             "matching": colmap.matching_for(len(names), config["images.matching"]), "warnings": []}
     cloud = np.zeros((0, 3))
     if len(sfm.registered) >= MIN_ALIGNED and len(sfm.points):
         to_mesh = _to_mesh_frame(sfm, cameras, names, streams["metrics"])

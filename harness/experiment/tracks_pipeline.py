@@ -14,7 +14,14 @@ of them, and on the clean observations (each untouched observation against
 its coordinates before noise, wherever the solver put its point); the 3D
 error after the robust similarity onto the reference points, in percent of
 their bounding-box diagonal (RMS, median, and median over the points that
-no wrong match touched); the camera-centre error after the same similarity.
+no wrong match touched); the camera-centre error after the same similarity,
+over the views the method registered, each against the reference camera of
+its view in the data set (``centres_scored`` of them).
+
+A structure-from-motion method that registered fewer than two views
+(:class:`~mpe3d.errors.Unregistered`) has finished: its run has no cloud,
+``registered_views`` 0 and NaN scores. Any other error, the input's refusal
+before a method is called included, fails the run, whichever method was asked.
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from mpe3d import solvers
-from mpe3d.errors import MpeError
+from mpe3d.errors import MpeError, Unregistered
 from mpe3d.harness.experiment.config import RunConfig, flatten, track_file
 from mpe3d.harness.experiment.result import RunResult, short_number
 from mpe3d.harness.scene import metrics
@@ -34,9 +41,8 @@ from mpe3d.harness.userdata import vgg
 from mpe3d.harness.userdata.formats import content_digest, read_points, read_projections, read_views
 from mpe3d.harness.userdata.reconstruct import prepare, solve_problem
 from mpe3d.harness.userdata.results import Result
+from mpe3d.solvers.degenerate import MIN_VIEW_POINTS
 from mpe3d.solvers.linalg import elongation
-
-MIN_VIEW_POINTS = 3  # what reconstruct asks of every view
 
 
 @dataclass(frozen=True)
@@ -62,7 +68,8 @@ def read_data(config: RunConfig) -> list[dict]:
         if count > len(views):
             raise MpeError(f"tracks.views: {count} views asked, {path} has {len(views)}")
         views = views[:count]
-    return views
+    # a view is known by its name from here on (a nameless one by its place in the data set)
+    return [{**view, "name": str(view.get("name", k))} for k, view in enumerate(views)]
 
 
 def _rows_by_view(views: list[dict]) -> np.ndarray:
@@ -157,10 +164,13 @@ def _reprojection_scores(result: Result, perturbed: Perturbed, problem) -> dict[
             "clean_dropped": int(np.sum(dropped & ~perturbed.wrong))}
 
 
-def _centres(result: Result) -> np.ndarray | None:
-    if not result.cameras or any(c.focal_px is None for c in result.cameras):
-        return None  # affine cameras have no centre
-    return np.stack([-c.rotation.T @ c.translation for c in result.cameras])
+def _centres(result: Result) -> dict[str, np.ndarray] | None:
+    """The centres of the cameras the method registered, by view name; None
+    for affine cameras, which have no centre."""
+    cameras = [c for c in result.cameras if c.registered]
+    if not cameras or any(c.focal_px is None for c in cameras):
+        return None
+    return {c.view: -c.rotation.T @ c.translation for c in cameras}
 
 
 def _reference_centres(P: np.ndarray) -> np.ndarray:
@@ -192,19 +202,30 @@ def _truth_scores(result: Result, perturbed: Perturbed, problem, truth, referenc
            "error_3d_clean_median_pct": float(np.median(apart[untouched])) if untouched.any()
            else float("nan"), "points_scored": len(ours)}
     centres = _centres(result)
-    if reference is not None and centres is not None and len(reference) >= len(centres):
-        true = _reference_centres(reference[:len(centres)])
-        moved = s * centres @ Q.T + t
+    # each registered view against the reference camera of the same name
+    names = [name for name in (centres or {}) if reference is not None and name in reference]
+    if names:
+        true = _reference_centres(np.stack([reference[name] for name in names]))
+        moved = s * np.stack([centres[name] for name in names]) @ Q.T + t
         out["centre_error_pct"] = float(np.median(100.0 * np.linalg.norm(moved - true, axis=1) / scale))
+        out["centres_scored"] = len(names)
     return out, aligned, points[theirs]
 
 
-def _reference(config: RunConfig):
+def _reference(config: RunConfig, views: list[dict]):
+    """The reference points (ids, (N, 3)) and cameras ({view name: 3x4}), where
+    the data set has them: ``tracks.truth`` and ``tracks.cameras`` (one matrix
+    per view of the data set, in its order), else a VGG set's own files."""
     truth_path, cameras_path = (track_file(config.values, k) for k in ("tracks.truth", "tracks.cameras"))
     truth = read_points(truth_path) if truth_path is not None else None
-    reference = read_projections(cameras_path) if cameras_path is not None else None
-    if reference is not None and reference.shape[1:] != (3, 4):
-        raise MpeError(f"{cameras_path}: tracks.cameras takes 3x4 pinhole matrices")
+    reference = None
+    if cameras_path is not None:
+        matrices = read_projections(cameras_path)
+        if matrices.shape[1:] != (3, 4):
+            raise MpeError(f"{cameras_path}: tracks.cameras takes 3x4 pinhole matrices")
+        if len(matrices) < len(views):
+            raise MpeError(f"{cameras_path}: {len(matrices)} cameras for the {len(views)} views of the data set")
+        reference = {view["name"]: P for view, P in zip(views, matrices)}
     data = track_file(config.values, "tracks.path")
     if (truth is None or reference is None) and data.is_file() and vgg.sniff(data):
         found_truth, found_cameras = vgg.read_reference(data)  # its .p3d and .P files, if any
@@ -213,9 +234,10 @@ def _reference(config: RunConfig):
     return truth, reference
 
 
-def _unregistered(config: RunConfig, perturbed: Perturbed, problem, error: MpeError) -> RunResult:
-    """The run of a mapper that registered no two views: no cloud, every score but
-    the counts undefined (NaN), the reason among its warnings."""
+def _unregistered(config: RunConfig, perturbed: Perturbed, problem, error: Unregistered) -> RunResult:
+    """The run of a method that registered no two views (its honest outcome, a
+    finished run): no cloud, every score but the counts undefined (NaN), the
+    reason among its warnings."""
     obs = problem.observations
     nan = float("nan")
     scores = {"observations": len(perturbed.clean), "removed": perturbed.removed,
@@ -243,10 +265,8 @@ def run(config: RunConfig, streams) -> RunResult:
     problem = _problem(config, perturbed.views, streams["solver"])
     try:
         result = solve_problem(problem)
-    except MpeError as exc:
-        if problem.solver != "colmap":
-            raise
-        return _unregistered(config, perturbed, problem, exc)  # a method that places nothing is a result
+    except Unregistered as exc:  # a method that registers nothing is a result; any other error fails the run
+        return _unregistered(config, perturbed, problem, exc)
     report = result.report
     scores: dict[str, float] = {
         "observations": len(perturbed.clean), "removed": perturbed.removed,
@@ -260,7 +280,7 @@ def run(config: RunConfig, streams) -> RunResult:
     placed = ~np.isin(result.ids, result.unplaced)
     if placed.sum() >= 3:  # a run-away solve leaves a cloud far longer than wide
         scores["elongation"] = elongation(result.points[placed])
-    truth, reference = _reference(config)
+    truth, reference = _reference(config, views)
     aligned, matched = result.points, np.zeros((0, 3))
     if truth is not None:
         found, aligned, matched = _truth_scores(result, perturbed, problem, truth, reference,
@@ -307,7 +327,7 @@ def describe(summary: dict[str, Any]) -> list[str]:
     if "error_3d_median_pct" in summary:
         lines.append("  ".join(f"{k}={short_number(summary[k])}" for k in
                                ("error_3d_pct", "error_3d_median_pct", "error_3d_clean_median_pct",
-                                "centre_error_pct") if k in summary))
+                                "centre_error_pct", "centres_scored") if k in summary))
     lines.append(f"{summary['termination']}; solve {summary['runtime_s']:.3f} s, "
                  f"total {summary['wall_s']:.3f} s")
     return lines

@@ -135,10 +135,11 @@ def read_nview(path: str | Path) -> list[dict]:
     return [view for view in views if len(view["ids"])]
 
 
-def read_reference(path: str | Path) -> tuple[tuple[np.ndarray, np.ndarray] | None, np.ndarray | None]:
+def read_reference(path: str | Path) -> tuple[tuple[np.ndarray, np.ndarray] | None, dict[str, np.ndarray] | None]:
     """The data set's reference, where it has one: its points (ids as text, and
-    (N, 3)) from the ``.p3d`` file, and its cameras (K, 3, 4) from the ``.P``
-    files (all views', or None)."""
+    (N, 3)) from the ``.p3d`` file, and its cameras from the ``.P`` files (all
+    views', or None), each 3x4 by its view's name (the name
+    :func:`read_nview` gives the view: the files' stem)."""
     path = Path(path)
     table = _table(path)
     p3d = points_file(path)
@@ -154,7 +155,7 @@ def read_reference(path: str | Path) -> tuple[tuple[np.ndarray, np.ndarray] | No
     cameras = np.stack([_matrix(f, 4, "a 3x4 camera") for f in files])
     if cameras.shape[1:] != (3, 4):
         raise MpeError(f"{files[0]}: a camera matrix must have 3 rows of 4")
-    return truth, cameras
+    return truth, {f.name.removesuffix(".P"): P for f, P in zip(files, cameras)}
 
 
 def companions(path: str | Path) -> list[Path]:

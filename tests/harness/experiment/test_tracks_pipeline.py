@@ -64,7 +64,9 @@ def test_a_view_left_with_too_few_observations_is_left_out_with_a_note():
     seen = set()
     for seed in range(20):
         out = tracks_pipeline.perturb(views, 0.5, 0.0, 0.0, np.random.default_rng(seed))
-        seen |= {note.startswith("view 'thin'") for note in out.notes}
+        thin = any(note.startswith("view 'thin'") for note in out.notes)
+        assert len(out.views) == (3 if thin else 4) and ("thin" in [v["name"] for v in out.views]) != thin
+        seen.add(thin)
     assert True in seen
 
 
@@ -187,9 +189,110 @@ def test_colmaps_mapper_is_a_method_of_the_tracks_pipeline_and_its_limits_are_ch
     result = execute.run(make_config(base))
     assert result.metrics["registered_views"] == 10 and result.metrics["error_3d_median_pct"] < 1.0
     assert result.metrics["caught"] > 0  # COLMAP's filter drops wrong matches too
-    with pytest.raises(MpeError, match="tracks.camera.*tracks.solver=colmap takes"):
+    with pytest.raises(MpeError, match="tracks.camera.*tracks.solver=colmap.*takes"):
         make_config({**base, "tracks.camera": "scaled"})
     dino = execute.run(make_config({**base, "tracks.path": str(REALDATA / "dino" / "keypoints.csv"),
                             "tracks.truth": None, "tracks.views": 6}))
     assert dino.metrics["registered_views"] == 0 and np.isnan(dino.metrics["rms_px"])  # a result, not a crash
     assert "registered no two views" in dino.facts["warnings"][-1]
+
+
+def _pinhole_track_set(folder, n_points=60, n_views=5, thin=None, scrambled=None):
+    """Exact keypoints of a random cloud through pinholes of focal 1500 px turning
+    12 degrees a view, written to ``folder`` as keypoints.csv (views cam0, cam1...),
+    points.csv and cameras.npy (the true 3x4 cameras). View ``thin`` sees 3
+    points only; view ``scrambled`` sees every point at a random pixel (no pose
+    agrees with it)."""
+    from mpe3d.solvers.sfm.cameras import exp_so3
+
+    rng = np.random.default_rng(0)
+    X = rng.uniform(-1, 1, (n_points, 3))
+    K = np.array([[1500.0, 0, 960], [0, 1500.0, 640], [0, 0, 1]])
+    P = np.stack([K @ np.c_[exp_so3(np.array([[0.05 * k, np.radians(12.0 * k - 24.0), 0.0]]))[0],
+                            [0.1 * k, 0.0, 5.0]] for k in range(n_views)])
+    rows = []
+    for k in range(n_views):
+        h = np.c_[X, np.ones(n_points)] @ P[k].T
+        xy = h[:, :2] / h[:, 2:]
+        if k == scrambled:
+            xy = rng.uniform([0, 0], [1920, 1280], xy.shape)
+        rows += [(f"cam{k}", i, *xy[i]) for i in range(3 if k == thin else n_points)]
+    folder.mkdir(parents=True, exist_ok=True)
+    pd.DataFrame(rows, columns=["view", "point", "x", "y"]).to_csv(folder / "keypoints.csv", index=False)
+    pd.DataFrame({"id": range(n_points), "x": X[:, 0], "y": X[:, 1], "z": X[:, 2]}).to_csv(
+        folder / "points.csv", index=False)
+    np.save(folder / "cameras.npy", P)
+
+
+def _pinhole_config(folder, **keys):
+    return make_config({"pipeline": "tracks", "tracks.root": str(folder), "tracks.path": "keypoints.csv",
+                        "tracks.truth": "points.csv", "tracks.cameras": "cameras.npy",
+                        "tracks.camera": "perspective", **keys})
+
+
+def test_views_after_a_left_out_view_are_scored_against_their_own_cameras(tmp_path):
+    """cam1 keeps 2 of its 3 observations (seed 1) and is left out: cam2..cam4 are
+    scored against cameras 2..4 (before: against 1..3, a centre error of 28 %, where
+    bundle adjustment's cameras stand about 1 % from the true ones)."""
+    _pinhole_track_set(tmp_path, thin=1)
+    result = execute.run(_pinhole_config(tmp_path, **{"tracks.drop_fraction": 0.2, "seed": 1}))
+    m = result.metrics
+    assert any(note.startswith("view 'cam1' kept") for note in result.facts["warnings"])
+    assert m["views_kept"] == 4 and m["registered_views"] == 4
+    assert m["centres_scored"] == 4 and m["centre_error_pct"] < 3.0
+
+
+def test_a_view_the_method_left_out_leaves_the_centre_error_of_the_others(tmp_path):
+    """Bundle adjustment leaves out cam3, whose keypoints are random: the centre
+    error stands over the 4 registered views (before: no centre error at all)."""
+    _pinhole_track_set(tmp_path, scrambled=3)
+    result = execute.run(_pinhole_config(tmp_path))
+    m = result.metrics
+    assert m["views_kept"] == 5 and m["registered_views"] == 4
+    assert m["centres_scored"] == 4 and m["centre_error_pct"] < 3.0
+    assert "centres_scored=4" in tracks_pipeline.describe(result.summary())[2]
+
+
+def test_only_a_method_that_registers_nothing_finishes_without_a_cloud(tmp_path, capsys):
+    """The one error a finished run may end in is ``Unregistered``: views that share
+    no points are refused before any method is called, and that run FAILED for
+    COLMAP's mapper as for bundle adjustment (before: COLMAP's FINISHED, with NaN
+    scores, and --rerun-failed never retried it), while COLMAP on tracks it cannot
+    register (60 points through scaled orthographic cameras) finishes, no view
+    registered, and is not retried."""
+    pytest.importorskip("pycolmap")
+    from mlflow.tracking import MlflowClient
+
+    from mpe3d.cli import main
+
+    scaled_track_set(tmp_path / "scaled")
+    frame = pd.read_csv(tmp_path / "scaled" / "keypoints.csv")
+    first = frame["view"].isin(["v0", "v1"])
+    (tmp_path / "split").mkdir()
+    frame[(first & (frame["point"] < 30)) | (~first & (frame["point"] >= 30))].to_csv(
+        tmp_path / "split" / "keypoints.csv", index=False)
+    path = tmp_path / "failing.yaml"
+    path.write_text(f"name: failing-tracks\nbase: {{pipeline: tracks, tracks.root: {tmp_path}}}\n"
+                    "zip:\n  tracks.path: [split/keypoints.csv, split/keypoints.csv, scaled/keypoints.csv]\n"
+                    "  tracks.solver: [colmap, bundle, colmap]\n  tracks.camera: [radial, perspective, radial]\n")
+    uri = f"sqlite:///{tmp_path}/t.db"
+
+    def sweep(*flags):
+        code = main(["sweep", str(path), "--jobs", "1", "--no-artifacts", "--tracking-uri", uri, *flags])
+        return code, capsys.readouterr().out
+
+    code, out = sweep()
+    assert code == 1 and "1 finished, 2 failed" in out
+    client = MlflowClient(uri)
+    runs = client.search_runs([client.get_experiment_by_name("failing-tracks").experiment_id])
+    kids = [r for r in runs if "mlflow.parentRunId" in r.data.tags]
+    status = {(r.data.params["tracks.path"], r.data.params["tracks.solver"]): r for r in kids}
+    assert {k: r.info.status for k, r in status.items()} == {
+        ("split/keypoints.csv", "colmap"): "FAILED", ("split/keypoints.csv", "bundle"): "FAILED",
+        ("scaled/keypoints.csv", "colmap"): "FINISHED"}
+    for solver in ("colmap", "bundle"):
+        assert "share too few points" in status["split/keypoints.csv", solver].data.tags["mpe3d.error"]
+    unregistered = status["scaled/keypoints.csv", "colmap"].data
+    assert unregistered.metrics["registered_views"] == 0 and np.isnan(unregistered.metrics["rms_px"])
+    code, out = sweep("--rerun-failed")  # the failed runs run again; the finished one stays
+    assert code == 1 and "0 finished, 2 failed, 1 skipped" in out

@@ -49,7 +49,8 @@ def test_the_tracks_come_back_as_written(tmp_path, stem):
     for k, view in enumerate(views):
         assert np.array_equal(view["ids"], np.flatnonzero(table[:, k] >= 0))
     truth, cameras = vgg.read_reference(path)
-    assert np.allclose(truth[1], X) and cameras.shape == (5, 3, 4)
+    assert np.allclose(truth[1], X) and list(cameras) == [view["name"] for view in views]  # by view name
+    assert np.stack(list(cameras.values())).shape == (5, 3, 4)
 
 
 def test_a_vgg_set_reconstructs_and_scores_against_its_own_reference(tmp_path):
