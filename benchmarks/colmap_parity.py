@@ -43,7 +43,7 @@ import numpy as np
 from machine import describe
 
 from mpe3d.harness.scene import metrics, rendering, shapes
-from mpe3d.harness.userdata import photos
+from mpe3d.harness.userdata import photo_folder, photos
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.solvers import threads
 from mpe3d.solvers.sfm import colmap
@@ -156,7 +156,7 @@ def rendered_case(shape: str, count: int, seed: int, size: int, count_threads: i
 
 
 def real_case(folder: Path, seed: int, count_threads: int) -> dict:
-    names = photos.photo_names(folder)
+    names = photo_folder.list_photos(folder)
     with tempfile.TemporaryDirectory(prefix="mpe3d-parity-") as scratch:
         views, seconds = tracks_of(folder, names, Path(scratch), count_threads)
     line = {"case": str(folder), "photos": len(names), "threads": count_threads, **seconds,

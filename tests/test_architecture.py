@@ -157,6 +157,32 @@ def test_the_harness_shows_its_rooms():
     assert len(top) <= 8, top
 
 
+# The one module that calls COLMAP: every other reaches pycolmap through it.
+COLMAP_ADAPTER = "mpe3d.solvers.sfm.colmap"
+
+
+def _pycolmap_uses(source: str) -> list[int]:
+    """The lines of ``source`` that import pycolmap, name it, or reach for the adapter's own handle."""
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if (isinstance(node, ast.Import) and any(a.name.split(".")[0] == "pycolmap" for a in node.names)
+                or isinstance(node, ast.ImportFrom) and (node.module or "").split(".")[0] == "pycolmap"
+                or isinstance(node, ast.Name) and node.id == "pycolmap"
+                or isinstance(node, ast.Attribute) and node.attr in ("_pycolmap", "_colmap")
+                or isinstance(node, ast.Constant) and node.value == "pycolmap"):
+            lines.append(node.lineno)
+    return lines
+
+
+def test_no_pycolmap_call_outside_the_colmap_adapter():
+    uses = {name: found for name, path in _modules().items()
+            if name != COLMAP_ADAPTER and (found := _pycolmap_uses(path.read_text()))}
+    assert not uses, uses
+    assert _pycolmap_uses(Path(_modules()[COLMAP_ADAPTER]).read_text())  # the rule sees a use
+    assert _pycolmap_uses("import importlib\nimportlib.import_module('pycolmap')\n") == [2]
+    assert _pycolmap_uses("from mpe3d.solvers.sfm import colmap\ncolmap.Camera('X', 1, 1, ())._colmap()\n") == [2]
+
+
 # A module over MAX_LINES lines is two jobs until a line here says why it is one.
 MAX_LINES = 500
 ONE_JOB = {}

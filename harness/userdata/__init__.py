@@ -7,7 +7,8 @@
 cloud, the cameras and the report); :mod:`.colmap_model`
 reads and writes COLMAP sparse models; :mod:`.photos` turns a folder of
 photos or a COLMAP database into keypoint views (SIFT, matches and their
-tracks, by pycolmap).
+tracks, by COLMAP through :mod:`mpe3d.solvers.sfm.colmap`), after
+:mod:`.photo_folder` has said which files are photos and which are damaged.
 
 Readers of other tools' files: :mod:`.bundler` (Bundler and BAL),
 :mod:`.vgg` (VGG's nview-corners tables).
@@ -17,4 +18,5 @@ May import: :mod:`mpe3d.solvers` (the SfM stack included), :mod:`mpe3d.options`,
 :mod:`mpe3d.harness.tracking.identity` (a report says which code made it).
 """
 
-__all__ = ["bundler", "colmap_model", "formats", "observations", "photos", "reconstruct", "results", "vgg"]
+__all__ = ["bundler", "colmap_model", "formats", "observations", "photo_folder", "photos", "reconstruct", "results",
+           "vgg"]

@@ -302,10 +302,10 @@ def is_photo_folder(path: str | Path) -> bool:
     path = Path(path)
     if not path.is_dir():
         return False
-    from mpe3d.harness.userdata import photos
+    from mpe3d.harness.userdata import photo_folder
     from mpe3d.harness.userdata.colmap_model import looks_like_model
 
-    return not looks_like_model(path) and not any(path.glob("*.npz")) and bool(photos.photo_names(path))
+    return not looks_like_model(path) and not any(path.glob("*.npz")) and bool(photo_folder.list_photos(path))
 
 
 def read_views(path: str | Path, matches: str = DEFAULT_MATCHES, *, seed: int = 0,

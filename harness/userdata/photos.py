@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from mpe3d.errors import MpeError
+from mpe3d.harness.userdata.photo_folder import list_photos, usable_photos
 from mpe3d.options import DEFAULT_MATCHES, MATCHES, Interval
 from mpe3d.solvers.degenerate import MIN_VIEW_POINTS, SHARED_VARIABLE, shared_points, view_groups
 from mpe3d.solvers.sfm import colmap
 
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm")
 # An EXIF focal length is trusted between these multiples of the larger image
 # side (fields of view of about 14 to 118 degrees); beyond, it is a camera's
 # lie or a resized photo's stale tag (3,767 px for a 640-px image).
@@ -63,11 +63,6 @@ class FeatureTracks:
             if len(rows) >= min_points:
                 out.append({"name": name, "ids": self.track[rows], "xy": self.xy[rows]})
         return out
-
-
-def photo_names(folder: Path) -> list[str]:
-    """The photos of ``folder`` (not its subfolders), by name."""
-    return sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
 def looks_like_database(path: Path) -> bool:
@@ -107,9 +102,11 @@ def _union(names, keypoints, offsets, edges) -> FeatureTracks:
     _, label = connected_components(graph, directed=False)
     node = np.unique(edges)  # keypoints in some match
     image = (np.searchsorted(offsets, node, side="right") - 1).astype(np.int64)
-    label = label[node].astype(np.int64)  # csgraph's labels are int32: their products with a photo count are not
+    label = label[node]
     per_track = np.bincount(label)
-    distinct = np.bincount(np.unique(label * len(names) + image) // len(names), minlength=len(per_track))
+    distinct = np.zeros_like(per_track)
+    labels, counts = photos_per_label(label, image, len(names))
+    distinct[labels] = counts
     good = per_track == distinct  # no photo twice
     keep = good[label] & (per_track[label] >= 2)
     _, track = np.unique(label[keep], return_inverse=True)
@@ -117,6 +114,14 @@ def _union(names, keypoints, offsets, edges) -> FeatureTracks:
     xy = np.concatenate(keypoints)[node].astype(float)
     return FeatureTracks(names, image, track.astype(np.int64), node - offsets[image], xy,
                          int(np.count_nonzero(~good & (per_track >= 2))))
+
+
+def photos_per_label(label: np.ndarray, image: np.ndarray, n_images: int) -> tuple[np.ndarray, np.ndarray]:
+    """(labels, counts): how many distinct photos the keypoints of each label
+    are in. In int64: csgraph's labels are int32, and a label times the photo
+    count passes 2**31 at 512 photos of 8,192 keypoints."""
+    keys = np.unique(np.asarray(label, dtype=np.int64) * n_images + np.asarray(image, dtype=np.int64))
+    return np.unique(keys // n_images, return_counts=True)
 
 
 def tied_views(views: list[dict]) -> list[dict]:
@@ -180,7 +185,7 @@ def camera_views(views: list[dict], db: colmap.Database, path: Path) -> tuple[li
     if several:
         notes.append(f"{len(cameras)} cameras: each photo's keypoints taken through its own camera; "
                      + ("their known focal lengths brought to one" if common
-                        else "a focal length fitted per photo (not every camera's is known)"))
+                        else "a focal length fitted per camera (not every camera's is known)"))
     return out, notes
 
 
@@ -208,37 +213,28 @@ def read_database(path: str | Path, matches: str = DEFAULT_MATCHES) -> list[dict
     return [{**view, "notes": notes + camera_notes, "matches": matches} for view in tied]
 
 
-def _check_photos(folder: Path, names: list[str]) -> None:
-    """Every photo readable."""
-    from PIL import Image, UnidentifiedImageError
-
-    if len(names) < 2:
-        found = f"{len(names)} photo" + ("" if len(names) == 1 else "s")
-        raise MpeError(f"{folder}: {found} ({', '.join(IMAGE_SUFFIXES)}); reconstruction needs 2 or more")
-    for name in names:
-        try:
-            with Image.open(folder / name) as image:
-                image.verify()
-        except (UnidentifiedImageError, OSError, SyntaxError) as exc:
-            raise MpeError(f"{folder / name}: not a readable image ({exc.__class__.__name__})") from None
-
-
 def read_photos(folder: str | Path, matches: str = DEFAULT_MATCHES, *, threads: int | None = None,
                 max_features: int = 8192, seed: int = 0, scratch: str | Path | None = None) -> list[dict]:
     """A folder of photos as keypoint views: SIFT features, matches and tracks
-    by COLMAP, a camera per image size and EXIF focal length (COLMAP's
-    extractor's rule), in a database under ``scratch`` (None: the system's
-    temporary folder); ``seed`` for the verification's RANSAC."""
+    by COLMAP, a camera per photo as COLMAP's extractor writes them (alike ones
+    then shared: :func:`camera_views`), in a database under ``scratch`` (None:
+    the system's temporary folder); ``seed`` for the verification's RANSAC.
+    Which files are photos, and what is skipped: :mod:`.photo_folder`."""
     from mpe3d.solvers import threads as solver_threads
 
     folder = Path(folder)
     MATCHES.check("matches", matches)
-    names = photo_names(folder)
-    _check_photos(folder, names)
+    count = len(list_photos(folder))
     verify = matches == "verified"  # raw matches need no geometric verification
-    need = colmap.scratch_bytes(len(names), max_features, colmap.matched_pairs(len(names)), verify)
+    need = colmap.scratch_bytes(count, max_features, colmap.matched_pairs(count), verify)
     with colmap.scratch(scratch, need, prefix="mpe3d-photos-") as work:
+        found = usable_photos(folder, work)
+        if found.converted:  # the copies took their share: the database still needs its own
+            colmap.check_space(work.parent, colmap.scratch_bytes(len(found.names), max_features,
+                                                                colmap.matched_pairs(len(found.names)), verify))
         database = work / "database.db"
-        colmap.extract_and_match(database, folder, names, threads=threads or solver_threads.count(),
-                                 max_features=max_features, verify=verify, seed=seed)
-        return read_database(database, matches)
+        colmap.extract_and_match(database, found.image_dir, found.names,
+                                 threads=threads or solver_threads.count(), max_features=max_features,
+                                 verify=verify, seed=seed)
+        views = read_database(database, matches)
+    return [{**view, "notes": found.skipped + view["notes"]} for view in views]

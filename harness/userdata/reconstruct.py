@@ -39,7 +39,7 @@ from mpe3d.options import (
 )
 from mpe3d.solvers import Observations
 from mpe3d.solvers.degenerate import check_geometry, collect_notes
-from mpe3d.solvers.sfm import bundle, colmap_mapper
+from mpe3d.solvers.sfm import bundle, camera_groups, colmap_mapper
 from mpe3d.solvers.sfm.cameras import radial_cameras
 
 # -- solving -------------------------------------------------------------------
@@ -290,10 +290,14 @@ def _solve_reprojection(problem: Problem, tracks):
     if problem.start is not None:
         return bundle.from_start(tracks, *problem.start, loss=problem.loss,
                                  outlier_threshold=problem.outlier_threshold, random_state=seed)
+    if problem.view_cameras is not None:  # photos of several cameras: a focal length each
+        return camera_groups.bundle_adjust_cameras(tracks, problem.view_cameras, problem.camera,
+                                                   loss=problem.loss, outlier_threshold=problem.outlier_threshold,
+                                                   principal_point=problem.principal_point, random_state=seed)
     return bundle.bundle_adjust(tracks, problem.camera, loss=problem.loss,
                                 outlier_threshold=problem.outlier_threshold,
                                 principal_point=problem.principal_point, focal=problem.focal,
-                                shared_focal=problem.view_cameras is None, random_state=seed)
+                                random_state=seed)
 
 
 def stop_notes(fit) -> list[str]:

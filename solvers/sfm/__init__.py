@@ -7,7 +7,8 @@ incremental start (:mod:`.incremental`, affine; :mod:`.pinhole_start`, perspecti
 by view with pycolmap's robust two-view and absolute-pose estimators), what a
 fit rests on (:mod:`.support`), the camera models' starts and fits
 (:mod:`.camera_fits`), the rounds of wrong matches (:mod:`.outliers`) and the
-whole pipeline (:mod:`.bundle`, what ``objective="reprojection"`` runs).
+whole pipeline (:mod:`.bundle`, what ``objective="reprojection"`` runs;
+:mod:`.camera_groups` for photos of several cameras, a focal length each).
 COLMAP's own mapper on the same tracks is a method beside it
 (:mod:`.colmap_mapper`); :mod:`.colmap` is the one module that calls
 pycolmap, for both and for the harness (photos, databases, models). Its
@@ -18,6 +19,6 @@ May import: the stress side of :mod:`mpe3d.solvers`, :mod:`mpe3d.options`
 and :mod:`mpe3d.errors`. The stress side never imports this package.
 """
 
-__all__ = ["adjust", "bundle", "camera_fits", "cameras", "colmap", "colmap_mapper", "epipolar",
+__all__ = ["adjust", "bundle", "camera_fits", "camera_groups", "cameras", "colmap", "colmap_mapper", "epipolar",
            "epipolar_kernels", "incremental", "kernels", "outliers", "pinhole_start", "support", "tracks",
            "triangulation"]

@@ -15,8 +15,8 @@ for bit; with more, SIFT extraction and matching still do, but the mapper's
 bundle adjustment (Ceres) sums in thread order, so its poses may differ in
 the last digits from run to run (docs/methods/colmap.md).
 
-Why one module past 500 lines: the issue that made it asked for exactly one
-place that calls pycolmap; its parts (cameras, databases, extraction and
+One module for all of it: one place calls pycolmap (a test holds every
+other module to that); its parts (cameras, databases, extraction and
 matching, mapping, models, estimators) are each short and share the error
 handling and the camera conversions.
 """
@@ -38,12 +38,16 @@ from mpe3d.errors import MachineError, MpeError, first_line
 EXHAUSTIVE_UP_TO = 50  # photos; beyond, matching pairs each photo with its path neighbours
 SEQUENTIAL_OVERLAP = 10  # neighbours on each side of a photo along the path
 MIN_REGISTERED = 2  # views a model needs to be one
-# What a photo's features and a pair's matches take in a database, at most
-# (a SIFT descriptor's 128 bytes and a keypoint's 6 floats; a match's two ids,
-# twice when the verification keeps its inliers): 11 real photos at 8,192
-# features made 21 MB against 20.7 MB estimated.
+# What a photo's features and a pair's matches take in a database (a SIFT
+# descriptor's 128 bytes and a keypoint's 6 floats; a match's two ids, twice
+# when the verification keeps its inliers), and a margin for SQLite's pages
+# and journal: 11 real photos at 8,192 features made 21 MB against 20.7 MB
+# before the margin. The margin matters: COLMAP's extractor and matcher write
+# from worker threads, and a full disk there aborts the whole process
+# (SIGABRT from std::terminate) before any error can be caught.
 FEATURE_BYTES = 128 + 6 * 4
 MATCH_BYTES = 2 * 4
+SCRATCH_MARGIN = 1.5
 NO_SPACE = ("no space left", "disk is full", "disk full", "quota exceeded")
 
 
@@ -83,8 +87,16 @@ def _asked(what: str, culprit) -> Iterator[None]:
 
 def scratch_bytes(photos: int, max_features: int, pairs: int, verified: bool) -> int:
     """What a database of ``photos`` and ``pairs`` matched pairs takes, at most."""
-    return int(photos * max_features * FEATURE_BYTES
-               + pairs * max_features * MATCH_BYTES * (2 if verified else 1))
+    return int(SCRATCH_MARGIN * (photos * max_features * FEATURE_BYTES
+                                 + pairs * max_features * MATCH_BYTES * (2 if verified else 1)))
+
+
+def check_space(where: Path, need: int) -> None:
+    """One line (exit 3) when ``where`` has less than ``need`` bytes free."""
+    free = shutil.disk_usage(where).free
+    if free < need:
+        raise MachineError(f"--scratch {where}: {free / 2**20:.0f} MB free, about {need / 2**20:.0f} MB "
+                           "needed for the features and matches (give --scratch a folder on a larger disk)")
 
 
 @contextlib.contextmanager
@@ -95,10 +107,7 @@ def scratch(parent: Path | None, need: int, prefix: str = "mpe3d-colmap-") -> It
     where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
     if not where.is_dir():
         raise MachineError(f"--scratch {where}: no such folder")
-    free = shutil.disk_usage(where).free
-    if free < need:
-        raise MachineError(f"--scratch {where}: {free / 2**20:.0f} MB free, about {need / 2**20:.0f} MB "
-                           "needed for the features and matches (give --scratch a folder on a larger disk)")
+    check_space(where, need)
     try:
         folder = tempfile.TemporaryDirectory(prefix=prefix, dir=where)
     except OSError as exc:

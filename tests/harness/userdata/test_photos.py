@@ -8,7 +8,7 @@ from PIL import Image
 from mpe3d.cli import main
 from mpe3d.errors import MpeError
 from mpe3d.harness.scene import rendering, shapes
-from mpe3d.harness.userdata import photos
+from mpe3d.harness.userdata import photo_folder, photos
 from mpe3d.harness.userdata.formats import read_points
 from mpe3d.harness.userdata.reconstruct import reconstruct
 from mpe3d.solvers.sfm import colmap, colmap_mapper
@@ -34,7 +34,7 @@ def shoot(tmp_path_factory):
 def database(shoot, tmp_path_factory):
     folder, _ = shoot
     path = tmp_path_factory.mktemp("db") / "database.db"
-    colmap.extract_and_match(path, folder, photos.photo_names(folder))
+    colmap.extract_and_match(path, folder, photo_folder.list_photos(folder))
     return path
 
 
@@ -115,7 +115,7 @@ def test_an_exif_focal_length_is_kept_only_when_plausible(shoot, tmp_path):
     for focal_35mm in (40, 212):  # a normal lens; 5.9 times the image side, a stale tag
         photo_dir = _with_exif(folder, tmp_path / f"f{focal_35mm}", focal_35mm)
         database = tmp_path / f"f{focal_35mm}.db"
-        colmap.extract_and_match(database, photo_dir, photos.photo_names(photo_dir))
+        colmap.extract_and_match(database, photo_dir, photo_folder.list_photos(photo_dir))
         facts[focal_35mm] = photos.read_database(database)[0]
     assert facts[40]["focal_px"] / 320 in photos.PLAUSIBLE_FOCAL
     assert "focal_px" not in facts[212]
@@ -182,8 +182,8 @@ def _blank(folder, shoot):  # nothing to match: no two photos share a keypoint
 
 @pytest.mark.parametrize("make, message", [
     (lambda folder, shoot: None, "a folder input needs photos"),
-    (_unreadable, "not a readable image"),
-    (_one, "1 photo"),
+    (_unreadable, r"0 usable photo\(s\) of 2, 2 skipped \(a.jpg: not an image; b.jpg: not an image\)"),
+    (_one, r"1 usable photo\(s\) of 1, 0 skipped; reconstruction needs 2 or more"),
     (_blank, "holds no matches|share 3 or more tracks"),
 ])
 def test_bad_photo_folders_get_one_line_and_nothing_written(tmp_path, capsys, shoot, make, message):
@@ -200,7 +200,7 @@ def test_bad_photo_folders_get_one_line_and_nothing_written(tmp_path, capsys, sh
 def test_a_database_without_matches_is_one_line(shoot, tmp_path, capsys):
     folder, _ = shoot
     database = tmp_path / "database.db"
-    pycolmap.extract_features(database, folder, image_names=photos.photo_names(folder)[:3],
+    pycolmap.extract_features(database, folder, image_names=photo_folder.list_photos(folder)[:3],
                               device=pycolmap.Device.cpu)
     out = tmp_path / "cloud.ply"
     assert main(["reconstruct", str(database), "--out", str(out)]) == 2
