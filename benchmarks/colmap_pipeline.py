@@ -2,14 +2,17 @@
 
     python benchmarks/colmap_pipeline.py IMAGES OUT [--threads 2] [--mapper incremental|global]
 
-SIFT features at COLMAP's defaults (one shared camera, SIMPLE_RADIAL, as
-``mpe3d reconstruct`` reads a folder), matched as mpe3d matches them
+SIFT features at COLMAP's defaults (one shared camera, SIMPLE_RADIAL: what
+``mpe3d reconstruct`` makes of the camera per photo that COLMAP's extractor
+writes for one camera's photos), matched as mpe3d matches them
 (exhaustively up to 50 photos, each with its 10 neighbours on each side of
 the path beyond; geometric verification on, COLMAP's default), then the
 incremental mapper (or the global one) at its defaults. The models go to
 ``OUT/sparse/N``; one JSON line gives each step's seconds, the photos
 registered and the points of the largest model. This is the process
-``benchmarks/photos_vs_colmap.py`` times against ``mpe3d reconstruct``.
+``benchmarks/photos_vs_colmap.py`` times against ``mpe3d reconstruct``: it
+calls pycolmap itself, not mpe3d's adapter (``mpe3d.solvers.sfm.colmap``),
+so that COLMAP's process pays no import of mpe3d.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from pathlib import Path  # noqa: E402
 
 import pycolmap  # noqa: E402
 
-EXHAUSTIVE_UP_TO = 50  # mpe3d.harness.userdata.photos.EXHAUSTIVE_UP_TO
+EXHAUSTIVE_UP_TO = 50  # mpe3d.solvers.sfm.colmap.EXHAUSTIVE_UP_TO
 SEQUENTIAL_OVERLAP = 10
 
 

@@ -98,11 +98,9 @@ def _bundler(path: Path, folder: Path) -> dict:
 
 
 def model_poses(model: Path) -> dict:
-    import pycolmap
+    from mpe3d.solvers.sfm import colmap
 
-    reconstruction = pycolmap.Reconstruction(str(model))
-    return {im.name: (np.asarray(im.cam_from_world().rotation.matrix()), np.asarray(im.cam_from_world().translation))
-            for im in reconstruction.images.values() if im.has_pose}
+    return {name: (image.rotation, image.translation) for name, image in colmap.read_model(model).images.items()}
 
 
 def largest_model(sparse: Path) -> dict:

@@ -81,7 +81,8 @@ def add_parser(sub) -> None:
     rec.add_argument("--scratch", metavar="DIR",
                      help="photos and --solver colmap: the folder COLMAP's database is written to "
                      "(default: the system's temporary folder); its free space is checked first "
-                     "against an estimate (about 1.2 MB a photo at 8,192 features, plus the matches)")
+                     "against an estimate of the features and matches (docs/guide/reconstruct.md); exit 3 "
+                     "when it falls short")
     rec.add_argument("--loss", choices=REPROJECTION_LOSSES.names,
                      help="l2, or a robust loss: huber, soft_l1 (cauchy: reprojection only); default "
                      "soft_l1 for bundle adjustment of photos' and COLMAP databases' tracks, l2 otherwise")
