@@ -59,10 +59,12 @@ def run_sfm(image_dir: Path, names: list[str], workdir: Path, *, focal: float,
     with PILImage.open(image_dir / names[0]) as first:
         width, height = first.size
     camera = colmap.simple_camera("SIMPLE_PINHOLE", width, height, focal, principal_point)
+    # COLMAP aborts the process when the disk fills under its writer threads
+    colmap.check_space(workdir, colmap.scratch_bytes(len(names), max_features,
+                                                     colmap.matched_pairs(len(names), matching), True), given=False)
     seconds = colmap.extract_and_match(database, image_dir, names, camera=camera, matching=matching,
                                        threads=1, max_features=max_features, seed=seed)
-    model = colmap.incremental_mapping(database, image_dir, threads=1, seed=seed,
-                                       scratch_dir=workdir / "sparse")
+    model = colmap.incremental_mapping(database, image_dir, workdir / "sparse", threads=1, seed=seed)
     if model is None:  # the mapper made no model at all
         return SfmResult(database, names, np.zeros((0, 3)), np.zeros(0, dtype=np.int64), {}, 0, None, None,
                          {}, seconds)

@@ -92,7 +92,7 @@ def usable_photos(folder: Path, scratch: Path) -> PhotoFolder:
     folder, scratch = Path(folder), Path(scratch)
     candidates = list_photos(folder)
     if (scratch / IMAGE_DIR).resolve() == folder.resolve():  # copies there would replace the user's photos
-        raise MachineError(f"{scratch}: a scratch folder whose {IMAGE_DIR}/ is the photo folder {folder}")
+        raise MpeError(f"{scratch}: a scratch folder whose {IMAGE_DIR}/ is the photo folder {folder}")
     _register_heif()
     names, sizes, skipped, converted = [], {}, [], []
     for name in candidates:
@@ -266,6 +266,8 @@ def _write_copy(image, target: Path) -> str | None:
         except Exception:  # EXIF that PIL cannot write back: the copy goes without it
             copy.save(target, format="PNG", compress_level=1)
     except OSError as exc:
+        if exc.errno is None:  # PIL's encoder, not the disk: this photo alone
+            return f"unreadable (it cannot be written as an 8-bit PNG: {first_line(exc)})"
         raise MachineError(f"{target}: cannot write an 8-bit copy of the photo "
                            f"({exc.strerror or first_line(exc)})") from None
     return None

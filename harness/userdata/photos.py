@@ -142,7 +142,16 @@ def _trusted_focal(camera: colmap.Camera) -> float | None:
     return camera.focal if camera.prior_focal and ratio in PLAUSIBLE_FOCAL else None
 
 
-def camera_views(views: list[dict], db: colmap.Database, path: Path) -> tuple[list[dict], list[str]]:
+def _camera_of(db: colmap.Database, row: int, source) -> colmap.Camera:
+    """Photo ``row``'s camera, checked; one line naming the photo when mpe3d cannot model it."""
+    camera_id = int(db.camera_of[row])
+    where = f"{source}: photo {db.names[row]}"
+    if camera_id not in db.cameras:
+        raise MpeError(f"{where}: its camera {camera_id} is not in the database")
+    return db.cameras[camera_id].check(where)
+
+
+def camera_views(views: list[dict], db: colmap.Database, source) -> tuple[list[dict], list[str]]:
     """Each view with its photo's camera: keypoints as a pinhole of square
     pixels and no lens sees them (each camera's own model and parameters
     taken out, as COLMAP wrote them), its principal point, image size and,
@@ -159,9 +168,9 @@ def camera_views(views: list[dict], db: colmap.Database, path: Path) -> tuple[li
     alike: dict[tuple, colmap.Camera] = {}
     of = []
     for view in views:
-        camera = db.cameras[int(db.camera_of[row[view["name"]]])]
+        camera = _camera_of(db, row[view["name"]], source)
         of.append(alike.setdefault((camera.model, camera.width, camera.height, camera.params,
-                                    camera.prior_focal), camera.check(str(path))))
+                                    camera.prior_focal), camera))
     cameras = {camera.camera_id: camera for camera in alike.values()}
     first = of[0]
     centre, notes = first.principal_point, []
@@ -172,7 +181,10 @@ def camera_views(views: list[dict], db: colmap.Database, path: Path) -> tuple[li
     for view, camera in zip(views, of):
         focal = first.focal if common else camera.focal
         plain = camera.is_pinhole and np.array_equal(camera.principal_point, centre) and focal == camera.focal
-        xy = view["xy"] if plain else camera.to_pinhole(view["xy"], focal, centre)
+        try:
+            xy = view["xy"] if plain else camera.to_pinhole(view["xy"], focal, centre)
+        except MpeError as exc:
+            raise MpeError(f"{source}: photo {view['name']}: {exc}") from None
         facts = {"xy": xy, "principal_point": tuple(float(v) for v in centre),
                  "image_size": (camera.width, camera.height)}
         if not several or common:
@@ -189,11 +201,13 @@ def camera_views(views: list[dict], db: colmap.Database, path: Path) -> tuple[li
     return out, notes
 
 
-def read_database(path: str | Path, matches: str = DEFAULT_MATCHES) -> list[dict]:
-    """A COLMAP database's tracks as keypoint views (see the module's docstring)."""
+def read_database(path: str | Path, matches: str = DEFAULT_MATCHES, *, source=None) -> list[dict]:
+    """A COLMAP database's tracks as keypoint views (see the module's docstring);
+    its messages name ``source`` (the photo folder whose database it is), else it."""
     path = Path(path)
     MATCHES.check("matches", matches)
     db = colmap.read_database(path, matches)
+    path = source if source is not None else path
     tracks = tracks_of(db)
     if not tracks.names:
         raise MpeError(f"{path}: the database holds no images")
@@ -236,5 +250,5 @@ def read_photos(folder: str | Path, matches: str = DEFAULT_MATCHES, *, threads: 
         colmap.extract_and_match(database, found.image_dir, found.names,
                                  threads=threads or solver_threads.count(), max_features=max_features,
                                  verify=verify, seed=seed)
-        views = read_database(database, matches)
+        views = read_database(database, matches, source=folder)
     return [{**view, "notes": found.skipped + view["notes"]} for view in views]

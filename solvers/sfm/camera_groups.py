@@ -18,7 +18,8 @@ median relative-pose error). So, in two solves:
    grown pinhole start, the lens).
 
 The result is in the photos' own pixels: each view's camera has its own
-focal length back, and its residuals are scaled back. Where every photo has
+focal length back, and its residuals are scaled back (the fit's other pixel
+figures, such as each camera model's RMS, by their root-mean-square factor). Where every photo has
 a camera of its own (internet photos), there is nothing to share: step 1 is
 the answer.
 """
@@ -33,7 +34,7 @@ import numpy as np
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.cameras import PINHOLES, Cameras, radial_cameras
 from mpe3d.solvers.sfm.stages import Stage
-from mpe3d.solvers.sfm.tracks import Tracks
+from mpe3d.solvers.sfm.tracks import Tracks, rms
 
 
 def bundle_adjust_cameras(tracks: Tracks, view_cameras, camera: str = "auto", *, principal_point=None,
@@ -61,8 +62,16 @@ def bundle_adjust_cameras(tracks: Tracks, view_cameras, camera: str = "auto", *,
         return per_view
     why = (f"{len(focal)} cameras: a focal length per view first, each camera's median "
            f"({', '.join(f'{f:.1f}' for f in focal)} px) scaling its keypoints to one focal length")
-    return dataclasses.replace(shared, cameras=_unscaled(shared.cameras, scale),
-                               residuals=shared.residuals / scale[tracks.view, None],
+    residuals = shared.residuals / scale[tracks.view, None]
+    # the other pixel figures are sums over views of the scaled keypoints: back by the
+    # observations' root-mean-square factor (exact where every view's residuals are alike)
+    back = float(np.sqrt(np.mean(scale[tracks.view[shared.counted]] ** -2.0))) if shared.counted.any() else 1.0
+    by_camera = {model: value * back for model, value in shared.rms_by_camera.items()}
+    by_camera[shared.camera] = rms(residuals[shared.counted])
+    return dataclasses.replace(shared, cameras=_unscaled(shared.cameras, scale), residuals=residuals,
+                               rms_by_camera=by_camera, rms_history=shared.rms_history * back,
+                               affine_rms=shared.affine_rms * back, noise=shared.noise * back,
+                               affine_misfit=shared.affine_misfit * back,
                                stages=(Stage("cameras", True, why, seconds), *shared.stages))
 
 

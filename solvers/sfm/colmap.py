@@ -15,10 +15,11 @@ for bit; with more, SIFT extraction and matching still do, but the mapper's
 bundle adjustment (Ceres) sums in thread order, so its poses may differ in
 the last digits from run to run (docs/methods/colmap.md).
 
-One module for all of it: one place calls pycolmap (a test holds every
-other module to that); its parts (cameras, databases, extraction and
-matching, mapping, models, estimators) are each short and share the error
-handling and the camera conversions.
+One module for all of it, past 500 lines (tests/test_architecture.py says
+why): one place calls pycolmap, and a test holds every other module to that;
+its parts (cameras, databases, extraction and matching, mapping, models,
+estimators) are each short and share the error handling and the camera
+conversions.
 """
 
 from __future__ import annotations
@@ -65,6 +66,11 @@ def _pycolmap():
     return pycolmap
 
 
+def _seed(seed: int) -> int:
+    """A seed COLMAP takes (its RANSAC's is an int32): any integer >= 0, folded."""
+    return int(seed) % 2 ** 31
+
+
 def version() -> str:
     pycolmap = _pycolmap()
     return f"pycolmap {pycolmap.__version__} ({pycolmap.COLMAP_version})"
@@ -77,7 +83,7 @@ def _asked(what: str, culprit) -> Iterator[None]:
         yield
     except MpeError:
         raise
-    except (RuntimeError, ValueError, OSError, TypeError) as exc:
+    except (RuntimeError, ValueError, OSError, LookupError) as exc:
         reason = first_line(exc, 200)
         kind = MachineError if any(s in reason.lower() for s in NO_SPACE) else MpeError
         raise kind(f"{culprit}: COLMAP cannot {what}: {reason}") from None
@@ -91,11 +97,16 @@ def scratch_bytes(photos: int, max_features: int, pairs: int, verified: bool) ->
                                  + pairs * max_features * MATCH_BYTES * (2 if verified else 1)))
 
 
-def check_space(where: Path, need: int) -> None:
-    """One line (exit 3) when ``where`` has less than ``need`` bytes free."""
+def _named(where: Path, given: bool) -> str:
+    return f"--scratch {where}" if given else f"the temporary folder {where} (no --scratch given)"
+
+
+def check_space(where: Path, need: int, given: bool = True) -> None:
+    """One line (exit 3) when ``where`` (``given`` by the user, or the system's
+    temporary folder) has less than ``need`` bytes free."""
     free = shutil.disk_usage(where).free
     if free < need:
-        raise MachineError(f"--scratch {where}: {free / 2**20:.0f} MB free, about {need / 2**20:.0f} MB "
+        raise MachineError(f"{_named(where, given)}: {free / 2**20:.0f} MB free, about {need / 2**20:.0f} MB "
                            "needed for the features and matches (give --scratch a folder on a larger disk)")
 
 
@@ -106,12 +117,13 @@ def scratch(parent: Path | None, need: int, prefix: str = "mpe3d-colmap-") -> It
     written or has less than ``need`` bytes free."""
     where = Path(parent) if parent is not None else Path(tempfile.gettempdir())
     if not where.is_dir():
-        raise MachineError(f"--scratch {where}: no such folder")
-    check_space(where, need)
+        raise MpeError(f"--scratch {where}: no such folder")
+    check_space(where, need, given=parent is not None)
     try:
         folder = tempfile.TemporaryDirectory(prefix=prefix, dir=where)
     except OSError as exc:
-        raise MachineError(f"--scratch {where}: cannot write there ({exc.strerror or exc})") from None
+        raise MachineError(f"{_named(where, parent is not None)}: cannot write there ({exc.strerror or exc})") \
+            from None
     with folder as name:
         yield Path(name)
 
@@ -171,6 +183,9 @@ class Camera:
         ``focal`` and principal point ``centre``: its lens, aspect and own
         principal point taken out, by its model's parameters."""
         normalised = np.asarray(self._colmap().cam_from_img(np.asarray(xy, dtype=float)), dtype=float)
+        if not np.all(np.isfinite(normalised)):  # its undistortion found no ray for some keypoint
+            raise MpeError(f"camera {self.camera_id} ({self.model}, parameters {list(self.params)}): its lens "
+                           "cannot be taken out of every keypoint (undistortion does not converge)")
         return focal * normalised[:, :2] + np.asarray(centre, dtype=float)
 
 
@@ -264,7 +279,7 @@ def matched_pairs(count: int, matching: str = "auto") -> int:
     """The pairs the matcher compares among ``count`` photos."""
     if matching_for(count, matching) == "exhaustive":
         return count * (count - 1) // 2
-    return count * SEQUENTIAL_OVERLAP
+    return count * 2 * SEQUENTIAL_OVERLAP  # the neighbours, and as many at quadratic steps (COLMAP's default)
 
 
 def extract_and_match(database: Path, image_dir: Path, names: list[str], *, camera: Camera | None = None,
@@ -278,7 +293,7 @@ def extract_and_match(database: Path, image_dir: Path, names: list[str], *, came
     EXIF focal length, as COLMAP's extractor makes them. Returns the seconds
     of each step."""
     pycolmap = _pycolmap()
-    pycolmap.set_random_seed(seed)
+    pycolmap.set_random_seed(_seed(seed))
     seconds = {}
     start = time.perf_counter()
     reader = pycolmap.ImageReaderOptions()
@@ -298,7 +313,7 @@ def extract_and_match(database: Path, image_dir: Path, names: list[str], *, came
     options.num_threads = threads
     options.skip_geometric_verification = not verify
     geometry = pycolmap.TwoViewGeometryOptions()
-    geometry.ransac.random_seed = seed
+    geometry.ransac.random_seed = _seed(seed)
     with _asked("match features", image_dir):
         if matching_for(len(names), matching) == "exhaustive":
             pycolmap.match_exhaustive(database, matching_options=options, verification_options=geometry,
@@ -316,11 +331,11 @@ def extract_and_match(database: Path, image_dir: Path, names: list[str], *, came
 def verify_matches(database: Path, *, threads: int = 1, seed: int = 0) -> None:
     """COLMAP's two-view geometric verification (F, E or H by RANSAC) of every raw match."""
     pycolmap = _pycolmap()
-    pycolmap.set_random_seed(seed)
+    pycolmap.set_random_seed(_seed(seed))
     verifier = pycolmap.GeometricVerifierOptions()
     verifier.num_threads = threads
     geometry = pycolmap.TwoViewGeometryOptions()
-    geometry.ransac.random_seed = seed
+    geometry.ransac.random_seed = _seed(seed)
     with _asked("verify the matches", database):
         pycolmap.geometric_verification(str(database), verifier_options=verifier,
                                         two_view_geometry_options=geometry)
@@ -379,25 +394,23 @@ def _model(reconstruction, models: int = 1, seconds=None) -> Model:
     return Model(cameras, images, ids, points, models, error, dict(seconds or {}))
 
 
-def incremental_mapping(database: Path, image_dir: Path, *, threads: int = 1, seed: int = 0,
-                        scratch_dir: Path | None = None, extract_colors: bool = False) -> Model | None:
-    """COLMAP's incremental mapper on ``database``; its largest model (most
+def incremental_mapping(database: Path, image_dir: Path, out: Path, *, threads: int = 1,
+                        seed: int = 0) -> Model | None:
+    """COLMAP's incremental mapper on ``database`` (its models written under
+    ``out``); its largest model (most
     registered images, then most points), or None when it made none (a model
     of fewer than :data:`MIN_REGISTERED` images is none to a caller that
     needs one). ``seconds`` holds the mapping's time."""
     pycolmap = _pycolmap()
-    pycolmap.set_random_seed(seed)
+    pycolmap.set_random_seed(_seed(seed))
     options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = threads
-    options.random_seed = seed
-    options.extract_colors = extract_colors
+    options.random_seed = _seed(seed)
+    options.extract_colors = False  # no photo is read again: a point's colour is no use to a score
     start = time.perf_counter()
-    with contextlib.ExitStack() as stack:
-        out = Path(scratch_dir) if scratch_dir is not None else \
-            Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="mpe3d-sparse-")))
-        out.mkdir(parents=True, exist_ok=True)
-        with _asked("map the photos", database):
-            models = pycolmap.incremental_mapping(str(database), str(image_dir), str(out), options=options)
+    with _asked("map the photos", database):
+        Path(out).mkdir(parents=True, exist_ok=True)
+        models = pycolmap.incremental_mapping(str(database), str(image_dir), str(out), options=options)
     seconds = {"map_s": time.perf_counter() - start}
     best = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()), default=None)
     return None if best is None else _model(best, len(models), seconds)
@@ -453,7 +466,7 @@ def write_model(folder: Path, images: list[PosedImage], point_ids: np.ndarray, p
 
 def _ransac(options, max_error: float, seed: int, trials: int):
     options.max_error = max_error
-    options.random_seed = seed
+    options.random_seed = _seed(seed)
     options.max_num_trials = trials
     return options
 

@@ -1,17 +1,19 @@
 """COLMAP's incremental mapper as a method: the user's tracks through COLMAP.
 
 The tracks (every observation: view, point, pixel) become a COLMAP database
-in a scratch folder: one shared camera, an image per view, its observations
-as keypoints, and for each pair of views the pairs of keypoints that one
-track joins, as raw matches. COLMAP then does what it does to its own:
-two-view geometric verification (F, E or H by RANSAC, COLMAP's thresholds),
-and its incremental mapper (initial pair, registration by robust resection,
-triangulation, bundle adjustment with Ceres, filtering of observations
-beyond 4 px and of points under 1.5 degrees, re-triangulation, track
-completion and merging). The largest model comes back in the user's terms:
-each track's point (the 3D point most of its keypoints went to), each
-view's camera, and every observation's residual under that camera, as a
+in a scratch folder: a camera (one for all views, or one per camera of
+photos from several), an image per view, its observations as keypoints, and
+for each pair of views the pairs of keypoints that one track joins, as raw
+matches. COLMAP then does what it does to its own: two-view geometric
+verification (F, E or H by RANSAC, COLMAP's thresholds), and its incremental
+mapper (initial pair, registration by robust resection, triangulation,
+bundle adjustment with Ceres, filtering of observations beyond 4 px and of
+points under 1.5 degrees, re-triangulation, track completion and merging).
+The largest model comes back in the user's terms: each track's point (the 3D
+point most of its keypoints went to, :func:`majority_points`), each view's
+camera, and every observation's residual under that camera, as a
 :class:`~mpe3d.solvers.sfm.bundle.BundleResult` like bundle adjustment's.
+Every pycolmap call is :mod:`.colmap`'s.
 
 COLMAP's camera for our models: ``radial`` and ``auto`` take its default,
 SIMPLE_RADIAL (f, k); ``perspective`` its SIMPLE_PINHOLE. It has no affine
@@ -48,8 +50,9 @@ def refused(option: str, value) -> str | None:
     allowed, own = COLMAP_TAKES[option]
     if value in allowed:
         return None
-    kind = "COLMAP has no affine camera" if option == "camera" else "bundle adjustment's"
-    return f"{kind}; COLMAP's mapper has its own {own} and takes {option} {' or '.join(map(str, allowed))}"
+    if option == "camera":
+        return f"COLMAP has no affine camera; its mapper takes camera {' or '.join(allowed)}"
+    return f"bundle adjustment's; COLMAP's mapper has its own {own}, so {option} stays {allowed[0]}"
 
 
 def track_matches(tracks: Tracks) -> tuple[np.ndarray, np.ndarray]:
@@ -159,18 +162,19 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
         start = time.perf_counter()
         colmap.verify_matches(database, threads=threads, seed=seed)
         seconds["verify_s"] = time.perf_counter() - start
-        model = colmap.incremental_mapping(database, folder, threads=threads, seed=seed,
-                                           scratch_dir=folder / "sparse")
+        model = colmap.incremental_mapping(database, folder, folder / "sparse", threads=threads, seed=seed)
     if model is None or len(model.images) < colmap.MIN_REGISTERED:
         raise Unregistered("COLMAP registered no two views: its geometric verification or its "
                            "initial pair found too few inlier matches among the tracks")
     seconds.update(model.seconds)
-    return _result(model, tracks, keypoint, names, camera, c, groups, seconds)
+    return _result(model, tracks, keypoint, names, camera, c, cameras, groups, seconds)
 
 
-def _result(model: colmap.Model, tracks: Tracks, keypoint, names, camera, c, groups,
+def _result(model: colmap.Model, tracks: Tracks, keypoint, names, camera, c, started, groups,
             seconds) -> BundleResult:
-    """COLMAP's model in the tracks' terms (see :func:`colmap_map`)."""
+    """COLMAP's model in the tracks' terms (see :func:`colmap_map`); a view it
+    left out keeps its camera's start (COLMAP drops the cameras no registered
+    image uses)."""
     K, N = tracks.n_views, tracks.n_points
     R, t = np.tile(np.eye(3), (K, 1, 1)), np.zeros((K, 3))
     registered = np.zeros(K, dtype=bool)
@@ -178,7 +182,7 @@ def _result(model: colmap.Model, tracks: Tracks, keypoint, names, camera, c, gro
     focal, k1 = np.zeros(K), np.zeros(K)
     for k, name in enumerate(names):
         image = model.images.get(name)
-        params = model.cameras[int(groups[k]) + 1].params
+        params = (started[groups[k]] if image is None else model.cameras[image.camera_id]).params
         focal[k], k1[k] = params[0], params[3] if len(params) > 3 else 0.0
         if image is None:
             continue
@@ -190,8 +194,9 @@ def _result(model: colmap.Model, tracks: Tracks, keypoint, names, camera, c, gro
     X = np.zeros((N, 3))
     X[placed] = model.point_of(chosen[placed])
     shared = groups.max() == 0
-    cameras = radial_cameras(R, t, focal[:1] if shared else focal,
-                             np.array([k1[0], 0.0]) if shared else np.column_stack([k1, np.zeros(K)]),
+    one = int(np.flatnonzero(registered)[0])  # one camera for all: as a registered view has it, refined
+    cameras = radial_cameras(R, t, focal[one:one + 1] if shared else focal,
+                             np.array([k1[one], 0.0]) if shared else np.column_stack([k1, np.zeros(K)]),
                              c, shared=bool(shared))
     kept = (point3d >= 0) & (point3d == chosen[tracks.point]) & registered[tracks.view]
     dropped = ~kept & placed[tracks.point] & registered[tracks.view]

@@ -189,8 +189,12 @@ def test_colmaps_mapper_is_a_method_of_the_tracks_pipeline_and_its_limits_are_ch
     result = execute.run(make_config(base))
     assert result.metrics["registered_views"] == 10 and result.metrics["error_3d_median_pct"] < 1.0
     assert result.metrics["caught"] > 0  # COLMAP's filter drops wrong matches too
-    with pytest.raises(MpeError, match="tracks.camera.*tracks.solver=colmap.*takes"):
+    with pytest.raises(MpeError, match="^tracks.camera: tracks.solver=colmap: COLMAP has no affine camera; its "
+                                       "mapper takes camera auto or radial or perspective, got scaled"):
         make_config({**base, "tracks.camera": "scaled"})
+    with pytest.raises(MpeError, match="^tracks.loss: tracks.solver=colmap: bundle adjustment's; COLMAP's mapper "
+                                       "has its own loss .a trivial one., so loss stays l2, got huber"):
+        make_config({**base, "tracks.loss": "huber"})
     dino = execute.run(make_config({**base, "tracks.path": str(REALDATA / "dino" / "keypoints.csv"),
                             "tracks.truth": None, "tracks.views": 6}))
     assert dino.metrics["registered_views"] == 0 and np.isnan(dino.metrics["rms_px"])  # a result, not a crash

@@ -147,15 +147,14 @@ def test_track_matches_link_every_pair_of_a_tracks_observations():
 
 def test_colmap_refuses_what_it_cannot_be_asked():
     views = close_up_keypoints(n=60, views=4)
-    for kwargs, message in (({"camera": "scaled"}, "camera='scaled': COLMAP has no affine camera; COLMAP's mapper "
-                                                   "has its own camera models .no affine one. and takes camera "
-                                                   "auto or radial or perspective"),
+    for kwargs, message in (({"camera": "scaled"}, "camera='scaled': COLMAP has no affine camera; its mapper "
+                                                   "takes camera auto or radial or perspective"),
                             ({"loss": "huber"}, "loss='huber': bundle adjustment's; COLMAP's mapper has its own "
-                                                "loss .a trivial one. and takes loss l2"),
-                            ({"start": "file"}, "start='file': bundle adjustment's; .* takes start own"),
+                                                "loss .a trivial one., so loss stays l2"),
+                            ({"start": "file"}, "start='file': bundle adjustment's; .*, so start stays own"),
                             ({"outlier_threshold": 5.0}, "outlier_threshold=5.0: bundle adjustment's; COLMAP's "
-                                                         "mapper has its own filter .4 px. and takes "
-                                                         "outlier_threshold 20.0"),
+                                                         "mapper has its own filter .4 px., so "
+                                                         "outlier_threshold stays 20.0"),
                             ({"objective": "stress"}, "minimises the reprojection error"),
                             ({"projections": np.tile(np.eye(3)[:2], (4, 1, 1))}, "known projections")):
         with pytest.raises(MpeError, match=message):
