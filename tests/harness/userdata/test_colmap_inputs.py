@@ -211,8 +211,8 @@ def test_a_camera_none_of_whose_photos_registers_leaves_the_others(tmp_path):
     (a KeyError before)."""
     views = close_up_keypoints(n=120, views=6)
     rng = np.random.default_rng(1)
-    for view in views[4:]:  # the second camera's photos: keypoints no pose explains
-        view["xy"] = rng.uniform(0, 400, view["xy"].shape)
+    for view in views[4:]:  # the second camera's photos: 12 keypoints that no pose explains
+        view["ids"], view["xy"] = view["ids"][:12], rng.uniform(0, 400, (12, 2))
     result = colmap_mapper.colmap_map(Tracks.from_observations(prepare(views, solver="colmap").observations),
                                       view_cameras=np.array([0, 0, 0, 0, 1, 1]),
                                       image_size=np.full((6, 2), 400))
