@@ -305,7 +305,9 @@ def is_photo_folder(path: str | Path) -> bool:
     from mpe3d.harness.userdata import photo_folder
     from mpe3d.harness.userdata.colmap_model import looks_like_model
 
-    return not looks_like_model(path) and not any(path.glob("*.npz")) and bool(photo_folder.list_photos(path))
+    # raw camera files alone are photos too: the photo reader says in one line what to do with them
+    return not looks_like_model(path) and not any(path.glob("*.npz")) and bool(
+        photo_folder.list_photos(path) or photo_folder.raw_photos(path))
 
 
 def read_views(path: str | Path, matches: str = DEFAULT_MATCHES, *, seed: int = 0,

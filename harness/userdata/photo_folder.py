@@ -85,6 +85,11 @@ def list_photos(folder: Path) -> list[str]:
     return sorted(name for name in _entries(Path(folder)) if Path(name).suffix.lower() in PHOTO_SUFFIXES)
 
 
+def raw_photos(folder: Path) -> list[str]:
+    """The folder's raw camera files (not read: a user exports them as JPEG or TIFF)."""
+    return [name for name in _entries(Path(folder)) if Path(name).suffix.lower() in RAW_SUFFIXES]
+
+
 def usable_photos(folder: Path, scratch: Path) -> PhotoFolder:
     """The photos of ``folder`` that decode, each checked by its content
     (see the module's docstring); copies, when some are needed, and links to
@@ -288,7 +293,7 @@ def _link(source: Path, target: Path) -> None:
 
 def _too_few(folder: Path, candidates: list[str], names: list[str], skipped: list[tuple[str, str]]) -> str:
     """One line: the folder, what it held, what was skipped and why."""
-    raw = [name for name in _entries(folder) if Path(name).suffix.lower() in RAW_SUFFIXES]
+    raw = raw_photos(folder)
     raw_note = (f"; its {len(raw)} raw camera file(s) ({raw[0]}, ...) are not read: export them as JPEG or TIFF"
                 if raw else "")
     if not candidates:

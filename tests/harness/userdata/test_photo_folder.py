@@ -189,3 +189,13 @@ def test_colmap_extracts_sift_from_every_usable_photo(tmp_path):
     assert (phone.width, phone.height) == found.sizes["phone.webp"]
     assert phone.has_prior_focal_length
     assert phone.focal_length == pytest.approx(50 / 43.27 * np.hypot(size, size))  # COLMAP's 35-mm rule
+
+
+def test_a_folder_of_raw_files_is_that_one_line_on_the_command_line(tmp_path, capsys):
+    from mpe3d.cli import main
+
+    for name in ("IMG_1.CR2", "IMG_2.CR2"):
+        (tmp_path / name).write_bytes(b"II*\x00raw")
+    assert main(["reconstruct", str(tmp_path), "--out", str(tmp_path / "c.ply")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "2 raw camera file(s) (IMG_1.CR2, ...) are not read: export them" in err
