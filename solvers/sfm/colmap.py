@@ -194,6 +194,14 @@ def _camera(pc, camera_id=None) -> Camera:
                   bool(pc.has_prior_focal_length), int(pc.camera_id if camera_id is None else camera_id))
 
 
+def keypoint_box(z: np.ndarray, centre) -> tuple[int, int]:
+    """(width, height) of an image that holds every keypoint ``z`` round the
+    principal point ``centre``: keypoints may be centred on it (Bundler's and
+    BAL's are), or in pixels from the corner."""
+    width, height = np.ceil(2 * np.max(np.abs(np.asarray(z, dtype=float) - centre), axis=0)).astype(int) + 1
+    return int(width), int(height)
+
+
 def simple_camera(model: str, width: int, height: int, focal: float, centre, prior: bool = False,
                   camera_id: int = 1) -> Camera:
     """A one-focal camera of ``model`` (SIMPLE_PINHOLE, SIMPLE_RADIAL: k = 0)."""

@@ -95,14 +95,13 @@ def _database_parts(tracks: Tracks, keypoint: np.ndarray):
 def _cameras(tracks: Tracks, camera: str, c, image_size, focal, view_cameras):
     """COLMAP's cameras for the views and each view's camera: one shared, or
     one per group of ``view_cameras`` (then ``image_size`` is per view)."""
-    hi = tracks.z.max(axis=0)
     groups = np.zeros(tracks.n_views, dtype=np.int64) if view_cameras is None \
         else np.unique(np.asarray(view_cameras), return_inverse=True)[1].astype(np.int64)
     sizes = np.atleast_2d(np.asarray(image_size, dtype=float)) if image_size is not None else None
     out = []
     for g in range(int(groups.max()) + 1):
         if sizes is None:
-            width, height = np.ceil(np.maximum(2 * c, hi + 1)).astype(int)
+            width, height = colmap.keypoint_box(tracks.z, c)
         else:
             width, height = sizes[np.flatnonzero(groups == g)[0] if len(sizes) > 1 else 0].astype(int)
         prior = focal is not None and view_cameras is None
@@ -125,7 +124,7 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
     principal_point : (2,) or None, default None
         Fixed, as COLMAP keeps it; None: the centre of the keypoints' bounding box.
     image_size : (width, height), (K, 2) with ``view_cameras``, or None, default None
-        None: what holds the keypoints round the principal point.
+        None: what holds the keypoints round the principal point (:func:`.colmap.keypoint_box`).
     focal : float or None, default None
         A trusted focal length in pixels (a plausible EXIF one): COLMAP's
         prior. None starts it at 1.2 times the larger image side, as COLMAP does.

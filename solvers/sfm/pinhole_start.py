@@ -62,15 +62,8 @@ class PinholeStart:
 
 
 def _colmap_camera(focal, c, box) -> colmap.Camera:
-    """COLMAP's camera of ours, ``box`` (width, height) pixels: :func:`_box`."""
+    """COLMAP's camera of ours, ``box`` (width, height) pixels: :func:`.colmap.keypoint_box`."""
     return colmap.simple_camera("SIMPLE_PINHOLE", box[0], box[1], focal, c)
-
-
-def _box(tracks, c) -> tuple[int, int]:
-    """A camera's size that holds every keypoint round the principal point
-    ``c`` (they may be centred on it, as Bundler's and BAL's are)."""
-    width, height = np.ceil(2 * np.max(np.abs(tracks.z - c), axis=0)).astype(int) + 1
-    return int(width), int(height)
 
 
 def _cameras(R, t, focal, c) -> Cameras:
@@ -83,7 +76,7 @@ def pinhole_start(tracks: Tracks, principal_point, focal: float | None = None,
     """The start of the module doc, or None when no pair of views makes one."""
     c = np.asarray(principal_point, dtype=float)
     f = float(focal) if focal is not None else 1.2 * float(np.max(2 * np.abs(tracks.z - c)))
-    box = _box(tracks, c)
+    box = colmap.keypoint_box(tracks.z, c)
     state = _initial(tracks, f, c, box, seed)
     if state is None:
         return None
