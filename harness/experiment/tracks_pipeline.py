@@ -88,7 +88,7 @@ def perturb(views: list[dict], drop: float, wrong: float, noise_px: float,
     the rest by another track's observation in the same view, and add Gaussian
     noise of ``noise_px`` pixels to every one. Each perturbation draws from its
     own child of ``rng``, so changing one share leaves the others' draws alone.
-    A view left with fewer than 3 observations is removed, with a note."""
+    A view left with fewer than MIN_VIEW_POINTS (3) observations is removed, with a note."""
     drop_rng, wrong_rng, noise_rng = rng.spawn(3)
     owner = _rows_by_view(views)
     gone = np.zeros(len(owner), dtype=bool)

@@ -12,6 +12,7 @@ import numpy as np
 from mpe3d.errors import MpeError
 from mpe3d.harness.userdata.formats import finite_array
 from mpe3d.solvers import Observations, View
+from mpe3d.solvers.degenerate import MIN_VIEW_POINTS
 
 LIKELY_MISSING = ((-1.0, -1.0), (0.0, 0.0))  # what OpenCV and VGG files write for "not seen"
 SYMMETRY_TOL = 1e-6  # relative: distance matrices written as text lose a little
@@ -89,8 +90,8 @@ def observations_from(views: Sequence[dict], projections=None, source: str = "in
     labels = [np.asarray(v["ids"]).astype(str) for v in views]
     for k, (view, ids) in enumerate(zip(views, labels)):
         where = f"{source}: view '{view.get('name', k)}'"
-        if len(ids) < 3:
-            raise MpeError(f"{where} has {len(ids)} point(s); each view needs at least 3")
+        if len(ids) < MIN_VIEW_POINTS:
+            raise MpeError(f"{where} has {len(ids)} point(s); each view needs at least {MIN_VIEW_POINTS}")
         unique, counts = np.unique(ids, return_counts=True)
         if (counts > 1).any():
             raise MpeError(f"{where}: point '{unique[counts > 1][0]}' appears twice")
