@@ -18,7 +18,7 @@ from mpe3d.solvers.sfm.cameras import (
     with_distortion,
 )
 from mpe3d.solvers.sfm.support import ELONGATION, mean_by_view, placed_points, weak_points
-from mpe3d.solvers.sfm.tracks import Tracks, image_size, rms
+from mpe3d.solvers.sfm.tracks import Tracks, image_size, principal_point_of, rms
 from mpe3d.solvers.sfm.triangulation import adjusted_points, dlt_rows, least_squares_points
 from mpe3d.solvers.stress import project_rows
 
@@ -162,9 +162,7 @@ def _perspective(X, scaled: Cameras, tracks, principal_point, shared_focal, lm: 
     ``focal`` in pixels, when one is known) and in both depth orders (weak
     perspective cannot tell a cloud from its mirror image in depth; a pinhole
     can): a short solve from each, then the best one to the end."""
-    z = tracks.z
-    c = (z.min(axis=0) + z.max(axis=0)) / 2 if principal_point is None \
-        else np.asarray(principal_point, dtype=float)
+    c = principal_point_of(tracks, principal_point)
     size = image_size(tracks)
     R, s, t = scaled.current_rotations(), scaled.scale(), scaled.params[:, 3:5]
     centre = X.mean(axis=0)  # the pinhole matches the weak perspective at the centroid
@@ -187,9 +185,7 @@ def grown_pinhole(tracks, principal_point, lm: LMOptions, focal=None, seed: int 
     pair of views starts it."""
     from mpe3d.solvers.sfm.pinhole_start import pinhole_start
 
-    z = tracks.z
-    c = (z.min(axis=0) + z.max(axis=0)) / 2 if principal_point is None \
-        else np.asarray(principal_point, dtype=float)
+    c = principal_point_of(tracks, principal_point)
     start = pinhole_start(tracks, c, focal, seed)
     if start is None:
         return None

@@ -34,7 +34,7 @@ import numpy as np
 from mpe3d.solvers.sfm import bundle
 from mpe3d.solvers.sfm.cameras import PINHOLES, Cameras, radial_cameras
 from mpe3d.solvers.sfm.stages import Stage
-from mpe3d.solvers.sfm.tracks import Tracks, rms
+from mpe3d.solvers.sfm.tracks import Tracks, principal_point_of, rms
 
 
 def bundle_adjust_cameras(tracks: Tracks, view_cameras, camera: str = "auto", *, principal_point=None,
@@ -43,8 +43,7 @@ def bundle_adjust_cameras(tracks: Tracks, view_cameras, camera: str = "auto", *,
     (``view_cameras``: each view's camera), a focal length per camera (the
     module's doc); ``options`` are bundle adjustment's, ``focal`` excepted."""
     groups = np.unique(np.asarray(view_cameras), return_inverse=True)[1].reshape(-1)
-    lo, hi = tracks.z.min(axis=0), tracks.z.max(axis=0)
-    c = np.asarray((lo + hi) / 2 if principal_point is None else principal_point, dtype=float)
+    c = principal_point_of(tracks, principal_point)
     start = time.perf_counter()
     per_view = bundle.bundle_adjust(tracks, camera, principal_point=c, shared_focal=False, **options)
     seconds = time.perf_counter() - start

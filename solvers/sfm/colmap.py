@@ -361,10 +361,6 @@ class ModelImage:
     xy: np.ndarray  # (n, 2) keypoints, pixels
     point3d: np.ndarray  # (n,) each keypoint's point3D id, -1 for none
 
-    @property
-    def centre(self) -> np.ndarray:
-        return -self.rotation.T @ self.translation
-
 
 @dataclass
 class Model:
@@ -405,10 +401,10 @@ def _model(reconstruction, models: int = 1, seconds=None) -> Model:
 def incremental_mapping(database: Path, image_dir: Path, out: Path, *, threads: int = 1,
                         seed: int = 0) -> Model | None:
     """COLMAP's incremental mapper on ``database`` (its models written under
-    ``out``); its largest model (most
-    registered images, then most points), or None when it made none (a model
-    of fewer than :data:`MIN_REGISTERED` images is none to a caller that
-    needs one). ``seconds`` holds the mapping's time."""
+    ``out``); its largest model (most registered images, then most points),
+    or None when it made none (a model of fewer than :data:`MIN_REGISTERED`
+    images is none to a caller that needs one). ``seconds`` holds the
+    mapping's time."""
     pycolmap = _pycolmap()
     pycolmap.set_random_seed(_seed(seed))
     options = pycolmap.IncrementalPipelineOptions()

@@ -32,7 +32,7 @@ from mpe3d.options import COLMAP_CAMERAS, OUTLIER_THRESHOLD
 from mpe3d.solvers.sfm import colmap
 from mpe3d.solvers.sfm.bundle import BundleResult, place_unplaced
 from mpe3d.solvers.sfm.cameras import radial_cameras
-from mpe3d.solvers.sfm.tracks import Tracks
+from mpe3d.solvers.sfm.tracks import Tracks, principal_point_of
 
 # COLMAP's camera model for each of ours it takes (mpe3d.options.COLMAP_CAMERAS)
 COLMAP_MODELS = {"auto": "SIMPLE_RADIAL", "radial": "SIMPLE_RADIAL", "perspective": "SIMPLE_PINHOLE"}
@@ -143,8 +143,7 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
     ``seconds`` holds the time of verification and of mapping.
     """
     COLMAP_CAMERAS.check("camera", camera)
-    lo, hi = tracks.z.min(axis=0), tracks.z.max(axis=0)
-    c = np.asarray((lo + hi) / 2 if principal_point is None else principal_point, dtype=float)
+    c = principal_point_of(tracks, principal_point)
     cameras, groups = _cameras(tracks, camera, c, image_size, focal, view_cameras)
     keypoint = np.zeros(len(tracks.view), dtype=np.int64)  # each observation's index in its view
     for k in range(tracks.n_views):

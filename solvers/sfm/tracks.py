@@ -74,6 +74,13 @@ def image_size(tracks) -> float:
     return tracks.extent if isinstance(tracks, Tracks) else float(np.max(np.ptp(tracks.z, axis=0))) or 1.0
 
 
+def principal_point_of(tracks, given=None) -> np.ndarray:
+    """The pinholes' principal point: ``given``, or the centre of the keypoints' bounding box."""
+    if given is not None:
+        return np.asarray(given, dtype=float)
+    return (tracks.z.min(axis=0) + tracks.z.max(axis=0)) / 2
+
+
 def rms(residual: np.ndarray) -> float:
     """sqrt(mean ||r_t||^2) of (T, 2) residuals."""
     return float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 2) ** 2, axis=1))))
