@@ -223,9 +223,13 @@ def _reference(config: RunConfig, views: list[dict]):
         matrices = read_projections(cameras_path)
         if matrices.shape[1:] != (3, 4):
             raise MpeError(f"{cameras_path}: tracks.cameras takes 3x4 pinhole matrices")
-        if len(matrices) < len(views):
+        cut = config["tracks.views"] is not None  # the first tracks.views of the data set's views
+        if len(matrices) < len(views) or (len(matrices) != len(views) and not cut):
             raise MpeError(f"{cameras_path}: {len(matrices)} cameras for the {len(views)} views of the data set")
         reference = {view["name"]: P for view, P in zip(views, matrices)}
+    if reference is not None and len({view["name"] for view in views}) < len(views):
+        raise MpeError(f"{track_file(config.values, 'tracks.path')}: two views share a name; the reference "
+                       "cameras are matched to the views by name")
     data = track_file(config.values, "tracks.path")
     if (truth is None or reference is None) and data.is_file() and vgg.sniff(data):
         found_truth, found_cameras = vgg.read_reference(data)  # its .p3d and .P files, if any

@@ -135,7 +135,8 @@ def write_model(folder: str | Path, points: np.ndarray, ids: np.ndarray, views: 
     camera and a posed image per view with its keypoints, and each point with
     its track. Returns notes for what the model cannot say exactly.
 
-    ``views`` are the keypoint views solved (names, ids, xy); ``cameras`` their
+    ``views`` are the keypoint views solved (names, ids, xy; an ``image_size``
+    of its own where photos differ); ``cameras`` their
     :class:`~.results.ViewCamera` in the same order (None: points only, no images);
     ``dropped`` the (view name, id) pairs left out as wrong matches.
     """
@@ -164,7 +165,8 @@ def write_model(folder: str | Path, points: np.ndarray, ids: np.ndarray, views: 
             fx, fy, centre, R, T = _pinhole(camera, c, diameter)
             name = str(view.get("name", k))
             keep = [j for j, i in enumerate(view["ids"]) if (name, str(i)) not in skip]
-            pinhole = colmap.Camera("PINHOLE", int(width), int(height), (fx, fy, centre[0], centre[1]))
+            size = view.get("image_size", (width, height))
+            pinhole = colmap.Camera("PINHOLE", int(size[0]), int(size[1]), (fx, fy, centre[0], centre[1]))
             images.append(colmap.PosedImage(name if "." in name else f"{name}.png", pinhole, R, T,
                                             np.asarray(view["xy"], dtype=float)[keep]))
             for j, i in enumerate(np.asarray(view["ids"])[keep].tolist()):
@@ -202,6 +204,9 @@ def write_model_folder(folder: Path, problem, result) -> list[str]:
     obs, ids = problem.observations, problem.ids
     views = [{"name": name, "ids": ids[view.ids], "xy": view.coordinates}
              for name, view in zip(problem.view_names, obs.views)]
+    if problem.view_offsets is not None:  # photos of several cameras: each in its own pixels
+        views = [{**view, "xy": view["xy"] + offset, "image_size": tuple(size)}
+                 for view, offset, size in zip(views, problem.view_offsets, problem.image_sizes)]
     if result.objective != "reprojection" or any(v["xy"] is None for v in views):
         cameras, centre = None, np.zeros(2)
         notes = ["the COLMAP model holds the points only: distance matrices give no keypoints "

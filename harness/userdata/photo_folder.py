@@ -158,10 +158,12 @@ def _decoded(path: Path):
             return "empty (0 bytes)"
     except OSError as exc:
         return f"unreadable ({exc.strerror or first_line(exc)})"
-    image = None
+    image, limit = None, Image.MAX_IMAGE_PIXELS
     try:
         with warnings.catch_warnings():  # PIL's warnings on odd metadata, large images: not the user's business
             warnings.simplefilter("ignore")
+            # no pixel limit: a phone's 200-MP photo is twice PIL's guard against decompression bombs
+            Image.MAX_IMAGE_PIXELS = None
             image = Image.open(path)
             image.load()
         return image
@@ -171,6 +173,8 @@ def _decoded(path: Path):
         if image is not None:
             image.close()
         return _why(exc)
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
 
 
 def _why(exc: Exception) -> str:

@@ -158,10 +158,12 @@ def camera_views(views: list[dict], db: colmap.Database, source) -> tuple[list[d
     when known and plausible, focal length; with notes for the report.
 
     One camera for all photos: its principal point, and its focal length.
-    Several: every photo's keypoints round the first camera's principal
-    point; at the first camera's focal length when every camera's is known
-    (a pinhole's image scales with its focal length), else each at its own,
-    the views then marked with their ``camera`` (one focal length each)."""
+    Several: every photo's keypoints at its own camera's focal length, moved
+    round the first camera's principal point (bundle adjustment has one),
+    the view marked with its ``camera`` (a focal length fitted per camera,
+    never fixed from EXIF: COLMAP's EXIF focal length of a cropped photo is
+    off by the crop) and its ``offset``, its own principal point less that
+    one, which the reported camera gets back."""
     row = {name: k for k, name in enumerate(db.names)}
     # COLMAP's extractor writes a camera per photo by default: photos whose
     # cameras are alike (model, size, parameters) share one
@@ -171,33 +173,26 @@ def camera_views(views: list[dict], db: colmap.Database, source) -> tuple[list[d
         camera = _camera_of(db, row[view["name"]], source)
         of.append(alike.setdefault((camera.model, camera.width, camera.height, camera.params,
                                     camera.prior_focal), camera))
-    cameras = {camera.camera_id: camera for camera in alike.values()}
     first = of[0]
-    centre, notes = first.principal_point, []
-    trusted = [_trusted_focal(c) for c in cameras.values()]
-    several = len(cameras) > 1
-    common = several and all(f is not None for f in trusted)
+    centre = first.principal_point
+    several = len(alike) > 1
     out = []
     for view, camera in zip(views, of):
-        focal = first.focal if common else camera.focal
-        plain = camera.is_pinhole and np.array_equal(camera.principal_point, centre) and focal == camera.focal
+        own = camera.principal_point
+        plain = camera.is_pinhole and np.array_equal(own, centre)
         try:
-            xy = view["xy"] if plain else camera.to_pinhole(view["xy"], focal, centre)
+            xy = view["xy"] if plain else camera.to_pinhole(view["xy"], camera.focal, centre)
         except MpeError as exc:
             raise MpeError(f"{source}: photo {view['name']}: {exc}") from None
         facts = {"xy": xy, "principal_point": tuple(float(v) for v in centre),
                  "image_size": (camera.width, camera.height)}
-        if not several or common:
-            found = _trusted_focal(first)
-            if found is not None:
-                facts["focal_px"] = found
-        else:
-            facts["camera"] = camera.camera_id
+        if several:
+            facts["camera"], facts["offset"] = camera.camera_id, tuple(float(v) for v in own - centre)
+        elif _trusted_focal(first) is not None:
+            facts["focal_px"] = _trusted_focal(first)
         out.append({**view, **facts})
-    if several:
-        notes.append(f"{len(cameras)} cameras: each photo's keypoints taken through its own camera; "
-                     + ("their known focal lengths brought to one" if common
-                        else "a focal length fitted per camera (not every camera's is known)"))
+    notes = [f"{len(alike)} cameras: each photo's keypoints taken through its own camera, a focal "
+             "length fitted per camera"] if several else []
     return out, notes
 
 
@@ -245,7 +240,8 @@ def read_photos(folder: str | Path, matches: str = DEFAULT_MATCHES, *, threads: 
         found = usable_photos(folder, work)
         if found.converted:  # the copies took their share: the database still needs its own
             colmap.check_space(work.parent, colmap.scratch_bytes(len(found.names), max_features,
-                                                                colmap.matched_pairs(len(found.names)), verify))
+                                                                colmap.matched_pairs(len(found.names)), verify),
+                               given=scratch is not None)
         database = work / "database.db"
         colmap.extract_and_match(database, found.image_dir, found.names,
                                  threads=threads or solver_threads.count(), max_features=max_features,

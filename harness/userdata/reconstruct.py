@@ -65,6 +65,9 @@ class Problem:
     focal: float | None = None  # a plausible EXIF focal length in pixels, when known
     view_cameras: np.ndarray | None = None  # (K,) each photo's camera, photos of several; None: one
     image_sizes: np.ndarray | None = None  # (K, 2) each photo's (width, height), with view_cameras
+    # (K, 2) each photo's principal point less the shared one, with view_cameras: its
+    # keypoints were moved by it for the solve, and its reported camera gets it back
+    view_offsets: np.ndarray | None = None
     scratch: Path | None = None  # where COLMAP's databases go; None: the system's temporary folder
 
 
@@ -159,6 +162,7 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
                    _first(views, "image_size"), _first(views, "focal_px"),
                    np.array([view["camera"] for view in views]) if several else None,
                    np.array([view["image_size"] for view in views]) if several else None,
+                   np.array([view["offset"] for view in views], dtype=float) if several else None,
                    None if scratch is None else Path(scratch))
 
 

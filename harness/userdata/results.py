@@ -4,6 +4,7 @@ user is told about a solve, its stages and its code)."""
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -106,6 +107,17 @@ def stress_result(problem, rec, runtime: float, warnings: list[str]) -> Result:
                   unplaced=unplaced, warnings=warnings, facts=facts)
 
 
+def _own_principal_point(camera: ViewCamera, offset) -> ViewCamera:
+    """A pinhole solved round the shared principal point, in its photo's own
+    pixels: its image moved by ``offset`` (the photo's principal point less
+    the shared one)."""
+    if not camera.registered or camera.focal_px is None:
+        return camera
+    shift = np.eye(3)
+    shift[:2, 2] = offset
+    return dataclasses.replace(camera, P=shift @ camera.P)
+
+
 def reprojection_result(problem, tracks, fit, runtime: float,
                          warnings: list[str]) -> Result:
     """Reprojection RMS per view in pixels, the cameras (and as ``projections``
@@ -124,6 +136,8 @@ def reprojection_result(problem, tracks, fit, runtime: float,
     cameras = tuple(ViewCamera.from_numbers(name, numbers) if seen else
                     ViewCamera(name, np.full((3, 4), np.nan), registered=False)
                     for name, numbers, seen in zip(names, fit.cameras.matrices(), registered))
+    if problem.view_offsets is not None:
+        cameras = tuple(_own_principal_point(c, offset) for c, offset in zip(cameras, problem.view_offsets))
     projections = np.asarray(fit.cameras.current_rotations()[:, :2]
                              if fit.cameras.model != "matrix" else problem.cameras)
     unregistered = [name for name, seen in zip(names, registered) if not seen]

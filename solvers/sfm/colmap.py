@@ -224,10 +224,38 @@ class Database:
     matches: list[np.ndarray]  # (m, 2) keypoint indices, per pair
 
 
+COLMAP_TABLES = ("cameras", "images", "keypoints")  # what a file must hold to be read as COLMAP's database
+
+
+def _check_tables(path: Path) -> None:
+    """One line unless ``path`` holds COLMAP's tables, looked at read-only:
+    COLMAP writes its schema into any SQLite file it opens."""
+    import sqlite3
+
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{path}?mode=ro", uri=True)) as db:
+            tables = {row[0] for row in db.execute("select name from sqlite_master where type='table'")}
+    except sqlite3.Error as exc:
+        raise MpeError(f"{path}: not a readable SQLite file ({first_line(exc)})") from None
+    missing = [t for t in COLMAP_TABLES if t not in tables]
+    if missing:
+        raise MpeError(f"{path}: not a COLMAP database (no {', '.join(missing)} table)")
+
+
+def _check_matches(path: Path, names, keypoints, pairs, matches) -> None:
+    """One line naming the pair whose matches point past a photo's keypoints
+    (a stale database: the keypoints extracted again, the matches not)."""
+    for (a, b), pair in zip(pairs, matches):
+        if len(pair) and (pair[:, 0].max() >= len(keypoints[a]) or pair[:, 1].max() >= len(keypoints[b])):
+            raise MpeError(f"{path}: the matches of {names[a]} and {names[b]} point past their keypoints "
+                           "(run the matcher again)")
+
+
 def read_database(path: Path, matches: str) -> Database:
     """``path``'s images, cameras, keypoints and its ``matches`` (raw: the
     matcher's; verified: the inliers of its geometric verification)."""
     pycolmap = _pycolmap()
+    _check_tables(path)
     with _asked("read it as a database", path), pycolmap.Database.open(str(path)) as db:
         images = sorted(db.read_all_images(), key=lambda im: im.image_id)
         cameras = {int(c.camera_id): _camera(c) for c in db.read_all_cameras()}
@@ -241,8 +269,10 @@ def read_database(path: Path, matches: str) -> Database:
         index = {im.image_id: k for k, im in enumerate(images)}
         pairs = np.array([[index[i] for i in pycolmap.pair_id_to_image_pair(p)] for p in pair_ids],
                          dtype=np.int64).reshape(-1, 2)
-    return Database([im.name for im in images], np.array([im.camera_id for im in images], dtype=np.int64),
-                    cameras, keypoints, pairs, [np.asarray(m).reshape(-1, 2).astype(np.int64) for m in found])
+    names, found = [im.name for im in images], [np.asarray(m).reshape(-1, 2).astype(np.int64) for m in found]
+    _check_matches(path, names, keypoints, pairs, found)
+    return Database(names, np.array([im.camera_id for im in images], dtype=np.int64), cameras, keypoints, pairs,
+                    found)
 
 
 def write_database(path: Path, names: list[str], cameras: list[Camera], camera_of: np.ndarray,

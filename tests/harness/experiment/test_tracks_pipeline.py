@@ -246,6 +246,15 @@ def test_views_after_a_left_out_view_are_scored_against_their_own_cameras(tmp_pa
     assert m["centres_scored"] == 4 and m["centre_error_pct"] < 3.0
 
 
+def test_reference_cameras_that_do_not_match_the_views_one_to_one_are_refused(tmp_path):
+    """One matrix too many was paired with the first views without a word."""
+    _pinhole_track_set(tmp_path)
+    np.save(tmp_path / "cameras.npy", np.concatenate([np.load(tmp_path / "cameras.npy")] * 2)[:6])
+    with pytest.raises(MpeError, match="cameras.npy: 6 cameras for the 5 views of the data set"):
+        execute.run(_pinhole_config(tmp_path))
+    assert "centre_error_pct" in execute.run(_pinhole_config(tmp_path, **{"tracks.views": 4})).metrics
+
+
 def test_a_view_the_method_left_out_leaves_the_centre_error_of_the_others(tmp_path):
     """Bundle adjustment leaves out cam3, whose keypoints are random: the centre
     error stands over the 4 registered views (before: no centre error at all)."""

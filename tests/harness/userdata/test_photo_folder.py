@@ -199,3 +199,15 @@ def test_a_folder_of_raw_files_is_that_one_line_on_the_command_line(tmp_path, ca
     assert main(["reconstruct", str(tmp_path), "--out", str(tmp_path / "c.ply")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "2 raw camera file(s) (IMG_1.CR2, ...) are not read: export them" in err
+
+
+def test_a_photo_past_pils_pixel_guard_is_read(tmp_path, monkeypatch):
+    """PIL refuses images of more than twice its MAX_IMAGE_PIXELS (179 MP, under a
+    phone's 200-MP mode), which COLMAP reads: skipped as unreadable before. Its
+    guard, lowered here to stand for such a photo, is lifted while decoding."""
+    for name in ("a.png", "b.png"):
+        Image.fromarray(np.full((64, 64), 128, dtype=np.uint8)).save(tmp_path / name)
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 1000)
+    found = usable_photos(tmp_path, tmp_path / "scratch")
+    assert found.names == ["a.png", "b.png"] and not found.skipped
+    assert Image.MAX_IMAGE_PIXELS == 1000  # the guard is PIL's again afterwards
