@@ -121,9 +121,9 @@ def timed(command: list[str], threads: int) -> tuple[float, subprocess.Completed
 
 
 def scores(poses: dict, truth: dict) -> dict:
-    aucs = pose_auc(relative_pose_errors(poses, truth))
+    aucs = pose_auc(relative_pose_errors(truth, poses), (0.5, *POSE_AUC_THRESHOLDS))
     return {"registered": sum(n in poses for n in truth),
-            **{f"auc{t:g}": round(float(a), 2) for t, a in zip(POSE_AUC_THRESHOLDS, aucs)}}
+            **{key.replace("pose_", ""): round(a, 2) for key, a in aucs.items()}}
 
 
 def case(name: str, images: Path, truth: dict, work: Path, threads: int, mapper: str) -> dict:

@@ -306,8 +306,8 @@ def run(config: RunConfig, streams) -> RunResult:
 
 
 def method_name(config) -> str:
-    """How a tracks run is named in tables: bundle adjustment or COLMAP's mapper with its
-    camera, or the stress solver."""
+    """How a tracks run is named in tables: bundle adjustment or one of COLMAP's mappers
+    (``tracks.solver``: bundle, colmap, colmap_global) with its camera, or the stress solver."""
     if config["tracks.objective"] == "stress":
         return f"stress ({config['solver.name']})"
     return f"{config['tracks.solver']} ({config['tracks.camera']})"

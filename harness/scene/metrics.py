@@ -17,7 +17,8 @@ Scales, for comparing with the paper's tables (see the README):
   the authors' public code reports and most likely the one of the tables.
 
 Camera poses are scored as structure from motion is (:func:`relative_pose_errors`,
-:func:`pose_auc`): COLMAP's own benchmark, the relative-pose AUC.
+:func:`pose_auc`): COLMAP's own benchmark, the relative-pose AUC; :func:`score_poses`
+adds the photos registered and the camera-centre error after a similarity.
 """
 
 from __future__ import annotations
@@ -167,59 +168,159 @@ def evaluate(truth: np.ndarray, reconstruction: np.ndarray, align: str = "rigid"
     return metrics, aligned
 
 
-POSE_AUC_THRESHOLDS = (0.5, 1.0, 3.0, 5.0, 10.0)  # degrees: COLMAP's benchmark's, and AUC@3 (the IMC's)
+POSE_AUC_THRESHOLDS = (1, 3, 5, 10)  # degrees: AUC@3/5/10 as the IMC and learned SfM report it, and @1
+COLMAP_EPS = 1e-10  # COLMAP's normalize_vec: a vector is divided by max(eps, its norm)
 
 
-def relative_pose_errors(estimated: dict, reference: dict) -> np.ndarray:
-    """The relative pose error of every ordered pair of the ``reference``'s
-    photos, in degrees, as COLMAP's benchmark defines it
-    (``benchmark/reconstruction/evaluation/utils.py``,
-    ``compute_grouped_rel_errors`` with one model and one reference component):
-    the larger of the angle of R_est^T R_ref, the two relative rotations, and
-    the angle between the two relative translations' directions; 180 for a
-    pair not registered together. Both are ``{name: (R, t)}`` of
-    ``x_cam = R x + t``; a photo missing from ``estimated`` (or whose R is
-    not finite) was not registered, and estimated photos the reference does
-    not have are left out."""
-    names = sorted(reference)
-    errors = []
-    for src in names:
-        for tgt in names:
-            if src == tgt:
-                continue
-            if not all(n in estimated and np.all(np.isfinite(estimated[n][0])) for n in (src, tgt)):
-                errors.append(180.0)
-                continue
-            (R_est, t_est), (R_ref, t_ref) = (_relative(poses[src], poses[tgt])
-                                              for poses in (estimated, reference))
-            cos_r = (np.trace(R_est.T @ R_ref) - 1.0) / 2.0
-            d_r = np.degrees(np.arccos(np.clip(cos_r, -1.0, 1.0)))
-            cos_t = np.dot(t_est, t_ref) / max(np.linalg.norm(t_est) * np.linalg.norm(t_ref), 1e-300)
-            d_t = np.degrees(np.arccos(np.clip(cos_t, -1.0, 1.0)))
-            errors.append(float(max(d_r, d_t)))
-    return np.array(errors)
+def relative_pose_errors(reference: dict, estimated: dict) -> np.ndarray:
+    """The relative pose errors, in degrees, of COLMAP's benchmark.
+
+    Follows ``benchmark/reconstruction/evaluation/utils.py`` of COLMAP
+    (``compute_grouped_rel_errors`` with one estimated model and one
+    reference component, ``compute_rel_pose_error`` with
+    ``min_proj_center_dist`` 0, and ``geometry.py``'s ``vec_angular_dist_deg``).
+    Both arguments are ``{photo name: (R, t)}`` of ``x_cam = R x + t``; an
+    estimated photo whose R is not finite counts as not registered.
+
+    For an ordered pair (i, j) of photos, ``R_ij = R_j R_i^T`` and
+    ``t_ij = t_j - R_ij t_i`` (camera j from camera i). For every ordered pair
+    that both the reference and the estimate hold, the error is
+    ``max(angle(R_ij,est^T R_ij,ref), angle(t_ij,est, t_ij,ref))``, where a
+    translation is divided by ``max(1e-10, |t|)`` before the angle, so a zero
+    relative translation (two photos from one place) scores 90 degrees. Every
+    ordered pair that only one of them holds scores 180: a photo the estimate
+    did not register, and also (as COLMAP's code has it, beyond the usual
+    summary) each pair of registered photos of which one is not posed in the
+    reference ("a registered outlier"). No pair at all gives ``[180]``.
+    The measured pairs come first, in name order, then the 180s.
+    """
+    posed = {n for n, (R, _) in estimated.items() if np.all(np.isfinite(np.asarray(R, dtype=float)))}
+    both = sorted(posed & set(reference))
+    n_ref, n_est, m = len(reference), len(posed), len(both)
+    unmatched = n_ref * (n_ref - 1) + n_est * (n_est - 1) - 2 * m * (m - 1)  # the symmetric difference
+    measured = _pair_errors([reference[n] for n in both], [estimated[n] for n in both])
+    errors = np.concatenate([measured, np.full(unmatched, 180.0)])
+    return errors if len(errors) else np.array([180.0])
 
 
-def _relative(src, tgt):
-    """tgt_from_src of two cam_from_world poses (R, t)."""
-    (R_s, t_s), (R_t, t_t) = src, tgt
-    R = np.asarray(R_t) @ np.asarray(R_s).T
-    return R, np.asarray(t_t) - R @ np.asarray(t_s)
+def _pair_errors(reference: list, estimated: list) -> np.ndarray:
+    """max(rotation error, translation direction error) of every ordered pair."""
+    if len(reference) < 2:
+        return np.zeros(0)
+    R_ref, t_ref = _relative_poses(reference)
+    R_est, t_est = _relative_poses(estimated)
+    d_R = _rotation_angle(np.einsum("...ba,...bc->...ac", R_est, R_ref))  # estimated_from_gt: R_est^T R_ref
+    unit_ref = t_ref / np.maximum(COLMAP_EPS, np.linalg.norm(t_ref, axis=-1, keepdims=True))
+    unit_est = t_est / np.maximum(COLMAP_EPS, np.linalg.norm(t_est, axis=-1, keepdims=True))
+    d_t = np.degrees(np.arccos(np.clip(np.sum(unit_ref * unit_est, axis=-1), -1.0, 1.0)))
+    off_diagonal = ~np.eye(len(reference), dtype=bool)
+    return np.maximum(d_R, d_t)[off_diagonal]
 
 
-def pose_auc(errors: np.ndarray, thresholds=POSE_AUC_THRESHOLDS) -> np.ndarray:
-    """The area under the recall curve of ``errors`` up to each threshold, in
-    per cent of the threshold: COLMAP's ``compute_auc`` (trapezoid rule over
-    the sorted errors, from recall 0 at error 0)."""
+def _relative_poses(poses: list) -> tuple[np.ndarray, np.ndarray]:
+    """(K, K, 3, 3) and (K, K, 3): [i, j] is camera j's pose from camera i's."""
+    R = np.array([p[0] for p in poses], dtype=float)
+    t = np.array([p[1] for p in poses], dtype=float).reshape(-1, 3)
+    R_ij = np.einsum("jab,icb->ijac", R, R)  # R_j R_i^T
+    return R_ij, t[None, :, :] - np.einsum("ijab,ib->ija", R_ij, t)
+
+
+def _rotation_angle(R: np.ndarray) -> np.ndarray:
+    """Degrees turned by rotations (..., 3, 3): atan2(|axis|, trace - 1), exact
+    near 0 and 180 degrees where arccos of the trace alone loses digits."""
+    axis = np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], -1)
+    return np.degrees(np.arctan2(np.linalg.norm(axis, axis=-1), np.trace(R, axis1=-2, axis2=-1) - 1.0))
+
+
+def pose_auc(errors: np.ndarray, thresholds=POSE_AUC_THRESHOLDS) -> dict[str, float]:
+    """``{"pose_auc<t>": AUC}``: the area under the recall curve of ``errors``
+    up to each threshold ``t``, in per cent of ``t``.
+
+    COLMAP's ``compute_auc`` (``benchmark/reconstruction/evaluation/utils.py``,
+    ``min_error`` 0): the sorted errors with recall k/n at the k-th, (0, 0)
+    prepended; the curve up to the last error <= t, then flat at that recall
+    to t; the trapezoid rule over it.
+    """
     errors = np.sort(np.asarray(errors, dtype=float))
     if not len(errors):
         raise ValueError("no pose errors to score")
     recalls = np.r_[0.0, (np.arange(len(errors)) + 1) / len(errors)]
     errors = np.r_[0.0, errors]
-    aucs = []
+    aucs = {}
     for t in thresholds:
         last = np.searchsorted(errors, t, side="right")
         r = np.r_[recalls[:last], recalls[last - 1]]
         e = np.r_[errors[:last], t]
-        aucs.append(100.0 * np.trapezoid(r, x=e) / t)
-    return np.array(aucs)
+        aucs[f"pose_auc{t:g}"] = float(100.0 * np.trapezoid(r, x=e) / t)
+    return aucs
+
+
+def pose_recall(errors: np.ndarray, thresholds=POSE_AUC_THRESHOLDS) -> np.ndarray:
+    """Per cent of ``errors`` at or below each threshold (COLMAP's
+    ``compute_recall``): the recall curve, for a figure."""
+    errors = np.asarray(errors, dtype=float)
+    if not len(errors):
+        raise ValueError("no pose errors to score")
+    return 100.0 * np.mean(errors[None, :] <= np.asarray(thresholds, dtype=float)[:, None], axis=1)
+
+
+def score_poses(reference, estimated: dict, random_state=0) -> dict[str, float]:
+    """An estimate's poses scored against a reference's.
+
+    ``reference`` is a :class:`mpe3d.harness.userdata.references.Reference`
+    (its ``poses``, ``photos`` and ``unposed``; not imported here, the user's
+    files are a room of their own), ``estimated`` is ``{photo name: (R, t)}``,
+    matched to the reference's names exactly or else by base name (a
+    ``folder/a.jpg`` of either side is ``a.jpg``). Returns the pose AUCs
+    (:func:`pose_auc` of :func:`relative_pose_errors`, per cent), ``registered``
+    (how many of the reference's photos, posed or not, the estimate poses) and
+    its fraction of ``photos``, and ``centre_error``: the median distance of
+    the estimated camera centres -R^T t, moved by :func:`robust_similarity`
+    onto the reference's over the ``centres_scored`` photos both pose, in per
+    cent of the diagonal of the reference centres' bounding box (NaN under 3).
+    """
+    listed = set(reference.poses) | set(getattr(reference, "unposed", ()))
+    estimated = _on_reference_names(listed, {n: p for n, p in estimated.items()
+                                             if np.all(np.isfinite(np.asarray(p[0], dtype=float)))})
+    registered = sum(name in estimated for name in listed)
+    shared = sorted(set(reference.poses) & set(estimated))
+    scores = {**pose_auc(relative_pose_errors(reference.poses, estimated)), "registered": registered,
+              "registered_fraction": registered / reference.photos if reference.photos else float("nan"),
+              "photos": reference.photos, "centres_scored": len(shared), "centre_error": float("nan")}
+    if len(shared) >= 3:
+        ours = np.array([_centre(estimated[n]) for n in shared])
+        theirs = np.array([_centre(reference.poses[n]) for n in shared])
+        extent = float(np.linalg.norm(np.ptp([_centre(p) for p in reference.poses.values()], axis=0)))
+        with np.errstate(divide="ignore", invalid="ignore"):  # centres in one place: NaN, said as such
+            s, Q, t = robust_similarity(ours, theirs, np.random.default_rng(random_state))
+            median = float(np.median(np.linalg.norm(s * ours @ Q.T + t - theirs, axis=1)))
+        scores["centre_error"] = 100.0 * median / extent if extent > 0 else float("nan")
+    return scores
+
+
+def _centre(pose) -> np.ndarray:
+    R, t = pose
+    return -np.asarray(R, dtype=float).T @ np.asarray(t, dtype=float)
+
+
+def base_name(name: str) -> str:
+    """A photo's file name without any folder (either slash)."""
+    return name.replace("\\", "/").rsplit("/", 1)[-1]
+
+
+def _on_reference_names(listed: set, estimated: dict) -> dict:
+    """``estimated`` with each name the reference does not list renamed to the
+    listed photo of its base name, where the base name is one photo's on both sides."""
+    def by_base(names):
+        found: dict[str, list[str]] = {}
+        for name in names:
+            found.setdefault(base_name(name), []).append(name)
+        return found
+
+    ours, theirs = by_base(n for n in estimated if n not in listed), by_base(n for n in listed if n not in estimated)
+    renamed = {}
+    for name, pose in estimated.items():
+        base = base_name(name)
+        unique = name not in listed and len(ours[base]) == 1 and len(theirs.get(base, ())) == 1
+        renamed[theirs[base][0] if unique else name] = pose
+    return renamed

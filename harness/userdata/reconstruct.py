@@ -29,6 +29,7 @@ from mpe3d.harness.userdata.observations import drop_missing, observations_from
 from mpe3d.harness.userdata.results import Result, reprojection_result, stress_result
 from mpe3d.options import (
     CAMERAS,
+    COLMAP_SOLVERS,
     DEFAULT_MATCHES,
     OBJECTIVES,
     OUTLIER_THRESHOLDS,
@@ -151,8 +152,8 @@ def prepare(views: Sequence[dict] | str | Path, projections=None, solver: str | 
     if pinhole and len(projections) != obs.n_views:
         raise MpeError(f"{projections_source}: {len(projections)} matrices for {obs.n_views} views")
     names = [str(view.get("name", k)) for k, view in enumerate(views)]
-    if solver == "colmap":
-        _check_colmap(source, camera, loss, projections, start, outlier_threshold)
+    if solver in COLMAP_SOLVERS:
+        _check_colmap(source, solver, camera, loss, projections, start, outlier_threshold)
         start = "own"  # COLMAP starts from its own initial pair
     file_start = _file_start(views, obs, source, start, objective, camera, projections,
                              principal_point)
@@ -194,15 +195,15 @@ def _solver_for(objective: str, solver: str | None) -> str:
     return solver
 
 
-def _check_colmap(source, camera, loss, projections, start, outlier_threshold):
-    """What COLMAP's mapper cannot be asked (:data:`~mpe3d.solvers.sfm.colmap_mapper.COLMAP_TAKES`)."""
+def _check_colmap(source, solver, camera, loss, projections, start, outlier_threshold):
+    """What COLMAP's mappers cannot be asked (:data:`~mpe3d.solvers.sfm.colmap_mapper.COLMAP_TAKES`)."""
     for flag, value in (("camera", camera), ("loss", loss), ("start", start or "own"),
                         ("outlier_threshold", outlier_threshold)):
         reason = colmap_mapper.refused(flag, value)
         if reason is not None:
-            raise MpeError(f"{flag}={value!r}: {reason}")
+            raise MpeError(f"{flag}={value!r}: solver='{solver}': {reason}")
     if projections is not None:
-        raise MpeError(f"{source}: solver='colmap' estimates the cameras; known projections "
+        raise MpeError(f"{source}: solver='{solver}' estimates the cameras; known projections "
                        "are for solver='bundle'")
 
 
@@ -279,7 +280,7 @@ def _seed(random_state) -> int:
 def _solve_reprojection(problem: Problem, tracks):
     check_geometry(problem.observations)  # one line for what cannot determine a shape
     seed = _seed(problem.random_state)
-    if problem.solver == "colmap":
+    if problem.solver in COLMAP_SOLVERS:
         from mpe3d.solvers import threads
 
         several = problem.view_cameras is not None
@@ -287,7 +288,8 @@ def _solve_reprojection(problem: Problem, tracks):
                                         principal_point=problem.principal_point,
                                         image_size=problem.image_sizes if several else problem.image_size,
                                         focal=problem.focal, seed=seed, threads=threads.count(),
-                                        view_cameras=problem.view_cameras, scratch=problem.scratch)
+                                        view_cameras=problem.view_cameras, scratch=problem.scratch,
+                                        mapper=COLMAP_SOLVERS[problem.solver])
     if problem.cameras is not None:
         return bundle.known_cameras(tracks, problem.cameras, loss=problem.loss,
                                     outlier_threshold=problem.outlier_threshold)
@@ -334,9 +336,10 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
     solver : str or None, default None
         Who minimises the objective. The stress: any registered solver
         (``mpe3d solvers``, a plug-in's included; None: "refine"). The
-        reprojection error: "bundle" (mpe3d's bundle adjustment; None) or
+        reprojection error: "bundle" (mpe3d's bundle adjustment; None),
         "colmap" (COLMAP's geometric verification and incremental mapper on
-        the same tracks, through pycolmap).
+        the same tracks, through pycolmap) or "colmap_global" (the same
+        verification and COLMAP's global mapper, GLOMAP's).
     loss : {None, "l2", "huber", "soft_l1", "cauchy"}, default None
         rho of the squared residual (reprojection, scale 1 px), or refine's loss
         of the stress (l2, huber, soft_l1). None: soft_l1 for bundle
@@ -370,7 +373,7 @@ def reconstruct(views: Sequence[dict] | str | Path, projections=None, solver: st
         matches (mpe3d finds the wrong ones itself) or only those COLMAP's
         geometric verification kept.
     scratch : None or a folder, default None
-        Photos and solver="colmap": where COLMAP's database is written (its
+        Photos and solver="colmap" or "colmap_global": where COLMAP's database is written (its
         free space checked against an estimate first); None: the system's
         temporary folder.
     """

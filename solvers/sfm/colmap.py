@@ -9,11 +9,11 @@ Each call turns COLMAP's failures into one line: :class:`~mpe3d.errors.MpeError`
 written); COLMAP's own log is silenced.
 
 Repeatability: every random choice of COLMAP that pycolmap exposes takes
-the caller's ``seed`` (RANSAC in verification and estimators, the mapper's
-``random_seed``, pycolmap's global seed). With one thread a run repeats bit
-for bit; with more, SIFT extraction and matching still do, but the mapper's
-bundle adjustment (Ceres) sums in thread order, so its poses may differ in
-the last digits from run to run (docs/methods/colmap.md).
+the caller's ``seed`` (RANSAC in verification and estimators, either
+mapper's ``random_seed``, pycolmap's global seed). With one thread a run
+repeats bit for bit; with more, SIFT extraction and matching still do, but
+the mappers' bundle adjustment (Ceres) sums in thread order, so their poses
+may differ in the last digits from run to run (docs/methods/colmap.md).
 
 One module for all of it, past 500 lines (tests/test_architecture.py says
 why): one place calls pycolmap, and a test holds every other module to that;
@@ -428,26 +428,51 @@ def _model(reconstruction, models: int = 1, seconds=None) -> Model:
     return Model(cameras, images, ids, points, models, error, dict(seconds or {}))
 
 
-def incremental_mapping(database: Path, image_dir: Path, out: Path, *, threads: int = 1,
-                        seed: int = 0) -> Model | None:
-    """COLMAP's incremental mapper on ``database`` (its models written under
-    ``out``); its largest model (most registered images, then most points),
-    or None when it made none (a model of fewer than :data:`MIN_REGISTERED`
-    images is none to a caller that needs one). ``seconds`` holds the
-    mapping's time."""
+def _largest(mapper, options, database: Path, image_dir: Path, out: Path, threads: int, seed: int) -> Model | None:
+    """``mapper`` (a pycolmap mapping call) on ``database`` with ``options``,
+    seeded and threaded; its largest model (most registered images, then most
+    points), or None when it made none. ``seconds`` holds the mapping's time."""
     pycolmap = _pycolmap()
     pycolmap.set_random_seed(_seed(seed))
-    options = pycolmap.IncrementalPipelineOptions()
     options.num_threads = threads
     options.random_seed = _seed(seed)
-    options.extract_colors = False  # no photo is read again: a point's colour is no use to a score
     start = time.perf_counter()
     with _asked("map the photos", database):
         Path(out).mkdir(parents=True, exist_ok=True)
-        models = pycolmap.incremental_mapping(str(database), str(image_dir), str(out), options=options)
+        models = mapper(str(database), str(image_dir), str(out), options=options)
     seconds = {"map_s": time.perf_counter() - start}
     best = max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()), default=None)
     return None if best is None else _model(best, len(models), seconds)
+
+
+def incremental_mapping(database: Path, image_dir: Path, out: Path, *, threads: int = 1,
+                        seed: int = 0) -> Model | None:
+    """COLMAP's incremental mapper on ``database`` (its models written under
+    ``out``); its largest model, or None when it made none (a model of fewer
+    than :data:`MIN_REGISTERED` images is none to a caller that needs one).
+    ``seconds`` holds the mapping's time."""
+    pycolmap = _pycolmap()
+    options = pycolmap.IncrementalPipelineOptions()
+    options.extract_colors = False  # no photo is read again: a point's colour is no use to a score
+    return _largest(pycolmap.incremental_mapping, options, database, image_dir, out, threads, seed)
+
+
+def global_mapping(database: Path, image_dir: Path, out: Path, *, threads: int = 1,
+                   seed: int = 0) -> Model | None:
+    """COLMAP's global mapper (GLOMAP's: rotation averaging, then global
+    positioning of cameras and points together, then bundle adjustment) on
+    the verified matches of ``database``, as :func:`incremental_mapping`.
+    Its pipeline hands ``threads`` and ``seed`` on to every stage (rotation
+    averaging, positioning, bundle adjustment, re-triangulation). It keeps
+    models of :data:`MIN_REGISTERED` images or more, as the incremental one
+    can, not only of its default three. ``image_dir`` is not read: the
+    mapper reads the photos again for its points' colours when it finds them
+    (it has no option against that), so it is shown ``out``, where none is."""
+    pycolmap = _pycolmap()
+    options = pycolmap.GlobalPipelineOptions()
+    options.min_model_size = MIN_REGISTERED
+    Path(out).mkdir(parents=True, exist_ok=True)
+    return _largest(pycolmap.global_mapping, options, database, out, out, threads, seed)
 
 
 def read_model(folder: Path) -> Model:

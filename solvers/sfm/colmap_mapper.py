@@ -1,14 +1,18 @@
-"""COLMAP's incremental mapper as a method: the user's tracks through COLMAP.
+"""COLMAP's mappers as methods: the user's tracks through COLMAP.
 
 The tracks (every observation: view, point, pixel) become a COLMAP database
 in a scratch folder: a camera (one for all views, or one per camera of
 photos from several), an image per view, its observations as keypoints, and
 for each pair of views the pairs of keypoints that one track joins, as raw
 matches. COLMAP then does what it does to its own: two-view geometric
-verification (F, E or H by RANSAC, COLMAP's thresholds), and its incremental
-mapper (initial pair, registration by robust resection, triangulation,
-bundle adjustment with Ceres, filtering of observations beyond 4 px and of
-points under 1.5 degrees, re-triangulation, track completion and merging).
+verification (F, E or H by RANSAC, COLMAP's thresholds), and one of its two
+mappers: the incremental one (initial pair, registration by robust
+resection, triangulation, bundle adjustment with Ceres, filtering of
+observations beyond 4 px and of points under 1.5 degrees, re-triangulation,
+track completion and merging), or the global one (GLOMAP's: every view's
+rotation at once by rotation averaging of the verified pairs' relative
+poses, then the cameras' positions and the points together by global
+positioning, then bundle adjustment and re-triangulation).
 The largest model comes back in the user's terms: each track's point (the 3D
 point most of its keypoints went to, :func:`majority_points`), each view's
 camera, and every observation's residual under that camera, as a
@@ -28,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from mpe3d.errors import Unregistered
-from mpe3d.options import COLMAP_CAMERAS, OUTLIER_THRESHOLD
+from mpe3d.options import COLMAP_CAMERAS, COLMAP_MAPPERS, OUTLIER_THRESHOLD
 from mpe3d.solvers.sfm import colmap
 from mpe3d.solvers.sfm.bundle import BundleResult, place_unplaced
 from mpe3d.solvers.sfm.cameras import radial_cameras
@@ -45,8 +49,11 @@ COLMAP_TAKES = {"camera": (COLMAP_CAMERAS.names, "camera models (no affine one)"
                 "outlier_threshold": ((OUTLIER_THRESHOLD,), "filter (4 px)")}
 
 
+MAPPING = {"incremental": colmap.incremental_mapping, "global": colmap.global_mapping}
+
+
 def refused(option: str, value) -> str | None:
-    """Why COLMAP's mapper cannot be asked ``option=value``; None when it can."""
+    """Why COLMAP's mappers cannot be asked ``option=value``; None when it can."""
     allowed, own = COLMAP_TAKES[option]
     if value in allowed:
         return None
@@ -112,8 +119,8 @@ def _cameras(tracks: Tracks, camera: str, c, image_size, focal, view_cameras):
 
 def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, image_size=None,
                focal: float | None = None, seed: int = 0, threads: int = 1,
-               view_cameras=None, scratch: Path | None = None) -> BundleResult:
-    """COLMAP's geometric verification and incremental mapper on ``tracks``.
+               view_cameras=None, scratch: Path | None = None, mapper: str = "incremental") -> BundleResult:
+    """COLMAP's geometric verification and ``mapper`` on ``tracks``.
 
     Parameters
     ----------
@@ -139,10 +146,13 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
     scratch : folder or None, default None
         Where COLMAP's database goes (its space checked first); None: the
         system's temporary folder.
+    mapper : {"incremental", "global"}, default "incremental"
+        COLMAP's incremental mapper, or its global one (GLOMAP's).
 
-    ``seconds`` holds the time of verification and of mapping.
+    ``seconds`` holds the time of verification (``verify_s``) and of mapping (``map_s``).
     """
     COLMAP_CAMERAS.check("camera", camera)
+    COLMAP_MAPPERS.check("mapper", mapper)
     c = principal_point_of(tracks, principal_point)
     cameras, groups = _cameras(tracks, camera, c, image_size, focal, view_cameras)
     keypoint = np.zeros(len(tracks.view), dtype=np.int64)  # each observation's index in its view
@@ -160,16 +170,17 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
         start = time.perf_counter()
         colmap.verify_matches(database, threads=threads, seed=seed)
         seconds["verify_s"] = time.perf_counter() - start
-        model = colmap.incremental_mapping(database, folder, folder / "sparse", threads=threads, seed=seed)
+        model = MAPPING[mapper](database, folder, folder / "sparse", threads=threads, seed=seed)
     if model is None or len(model.images) < colmap.MIN_REGISTERED:
-        raise Unregistered("COLMAP registered no two views: its geometric verification or its "
-                           "initial pair found too few inlier matches among the tracks")
+        start = "initial pair" if mapper == "incremental" else "rotation averaging"
+        raise Unregistered(f"COLMAP's {mapper} mapper registered no two views: its geometric verification or "
+                           f"its {start} found too few inlier matches among the tracks")
     seconds.update(model.seconds)
-    return _result(model, tracks, keypoint, names, camera, c, cameras, groups, seconds)
+    return _result(model, tracks, keypoint, names, camera, c, cameras, groups, seconds, mapper)
 
 
 def _result(model: colmap.Model, tracks: Tracks, keypoint, names, camera, c, started, groups,
-            seconds) -> BundleResult:
+            seconds, mapper) -> BundleResult:
     """COLMAP's model in the tracks' terms (see :func:`colmap_map`); a view it
     left out keeps its camera's start (COLMAP drops the cameras no registered
     image uses)."""
@@ -206,7 +217,7 @@ def _result(model: colmap.Model, tracks: Tracks, keypoint, names, camera, c, sta
     rms = float(np.sqrt(np.mean(np.sum(residuals[counted] ** 2, axis=1)))) if counted.any() else np.nan
     return BundleResult(points=points, cameras=cameras, residuals=residuals, dropped=dropped,
                         counted=counted, converged=True, iterations=0,
-                        termination=f"COLMAP's incremental mapper ({model.models} model(s), the "
+                        termination=f"COLMAP's {mapper} mapper ({model.models} model(s), the "
                                     f"largest kept)",
                         affine_rms=float("nan"), camera=camera if camera != "auto" else "radial",
                         rms_by_camera={"radial" if camera == "auto" else camera: rms},

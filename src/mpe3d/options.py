@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 from mpe3d.errors import MpeError, suggest
 
-__all__ = ["CAMERAS", "CAMERA_MODELS", "COLMAP_CAMERAS", "Choice", "DEFAULT_MATCHES", "INITS", "Interval", "MATCHES",
-           "OBJECTIVES", "OUTLIER_THRESHOLD", "OUTLIER_THRESHOLDS", "PROJECTIONS", "REPROJECTION_LOSSES",
-           "REPROJECTION_SOLVERS", "STARTS", "STRESS_LOSSES"]
+__all__ = ["CAMERAS", "CAMERA_MODELS", "COLMAP_CAMERAS", "COLMAP_MAPPERS", "COLMAP_SOLVERS", "Choice",
+           "DEFAULT_MATCHES", "INITS", "Interval", "MATCHES", "OBJECTIVES", "OUTLIER_THRESHOLD", "OUTLIER_THRESHOLDS",
+           "PROJECTIONS", "REPROJECTION_LOSSES", "REPROJECTION_SOLVERS", "STARTS", "STRESS_LOSSES"]
 
 
 @dataclass(frozen=True)
@@ -105,8 +105,11 @@ OBJECTIVES = Choice(("reprojection", "stress"))
 STRESS_LOSSES = Choice(("l2", "huber", "soft_l1"))
 REPROJECTION_LOSSES = Choice(("l2", "huber", "soft_l1", "cauchy"))
 # Who minimises the reprojection error: mpe3d's bundle adjustment, or COLMAP's
-# geometric verification and incremental mapper on the same tracks.
-REPROJECTION_SOLVERS = Choice(("bundle", "colmap"))
+# geometric verification and one of its mappers on the same tracks: colmap
+# the incremental one, colmap_global the global one (GLOMAP's).
+COLMAP_SOLVERS = {"colmap": "incremental", "colmap_global": "global"}  # each solver's COLMAP mapper
+COLMAP_MAPPERS = Choice(tuple(COLMAP_SOLVERS.values()))
+REPROJECTION_SOLVERS = Choice(("bundle", *COLMAP_SOLVERS))
 # The camera choices COLMAP's mapper takes: it has no affine camera.
 COLMAP_CAMERAS = Choice(("auto", "radial", "perspective"))
 # Which matches of a COLMAP database (or of photos) make the tracks: the raw

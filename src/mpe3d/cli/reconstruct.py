@@ -11,6 +11,7 @@ from pathlib import Path
 from mpe3d.errors import MpeError
 from mpe3d.options import (
     CAMERAS,
+    COLMAP_SOLVERS,
     DEFAULT_MATCHES,
     MATCHES,
     OBJECTIVES,
@@ -72,14 +73,15 @@ def add_parser(sub) -> None:
     rec.add_argument("--solver", metavar="NAME",
                      help=f"who minimises the objective. Reprojection: {' or '.join(REPROJECTION_SOLVERS)} "
                      "(default bundle: mpe3d's bundle adjustment; colmap: COLMAP's geometric "
-                     "verification and incremental mapper on the same tracks). Stress: refine "
+                     "verification and incremental mapper on the same tracks; colmap_global: the same "
+                     "verification and COLMAP's global mapper, GLOMAP's). Stress: refine "
                      "(default) or any other of `mpe3d solvers`, a plug-in's (--plugin) included")
     rec.add_argument("--matches", default=DEFAULT_MATCHES, choices=MATCHES.names,
                      help=f"photos and COLMAP databases: track the matcher's raw matches (default "
                      f"{DEFAULT_MATCHES}; wrong ones are found by the solve) or only the geometrically "
                      "verified ones")
     rec.add_argument("--scratch", metavar="DIR",
-                     help="photos and --solver colmap: the folder COLMAP's database is written to "
+                     help="photos and --solver colmap or colmap_global: the folder COLMAP's database is written to "
                      "(default: the system's temporary folder); its free space is checked first "
                      "against an estimate of the features and matches (docs/guide/reconstruct.md); exit 3 "
                      "when it falls short")
@@ -88,6 +90,12 @@ def add_parser(sub) -> None:
                      "soft_l1 for bundle adjustment of photos' and COLMAP databases' tracks, l2 otherwise")
     rec.add_argument("--report", metavar="FILE.json", help="write per-view residuals (pixels "
                      "for reprojection), cameras, dropped and unplaced ids and runtime as JSON")
+    rec.add_argument("--reference", metavar="REF",
+                     help="photos: score the cameras against reference poses, a COLMAP model (a sparse/0 "
+                     "or sparse folder, text or binary, or the folder holding it) or a Bundler .out "
+                     "(named by the list.txt beside it, else the photos in name order): relative-pose "
+                     "AUC@1/3/5/10 as COLMAP's benchmark defines it, photos registered, camera-centre "
+                     "error (docs/guide/reconstruct.md)")
     rec.add_argument("--seed", type=int, default=0, help="random state (default 0)")
     rec.add_argument("--plugin", action="append", default=[], metavar="FILE.py",
                      help="load a plug-in file (a stress solver for --solver) first; repeatable")
@@ -108,6 +116,7 @@ def cmd_reconstruct(args) -> int:
     report = check_output(args.report, "--report", (".json",)) if args.report else None
     if report is not None and report.resolve() == out.resolve():
         raise MpeError(f"--report {report}: the same file as --out")
+    reference = _reference(args.reference, args.input) if args.reference else None  # before any work
     with _working(f"reading {args.input}" + (" (SIFT features and matches by pycolmap)"
                                                if Path(args.input).is_dir() else "")):
         problem = prepare(args.input, projections=args.projections, solver=args.solver,
@@ -122,13 +131,16 @@ def cmd_reconstruct(args) -> int:
     with _working(f"solving {problem.observations.n_views} views by {problem.solver}"):
         result = solve_problem(problem)
     extra = {"input": str(args.input), "output": str(model or out)}
+    scores = _scored(reference, result, args.seed) if reference else None
+    if scores:
+        extra["reference"] = scores
     if model:
         from mpe3d.harness.userdata.colmap_model import write_model_folder
 
         result.warnings.extend(write_model_folder(model, problem, result))
     writer = bundler.solution_writer(out, problem, result) if solution else None
     write_result(out, result, report, extra, writer)
-    print(_summary(result.report))
+    print(_summary(result.report) + (_pose_summary(scores) if scores else ""))
     for message in result.warnings:
         print(f"mpe3d: warning: {message}", file=sys.stderr)
     print(f"wrote {model or out}" + (f" and {report}" if report else ""))
@@ -166,8 +178,39 @@ def _summary(summary: dict) -> str:
                 f"worst view RMS residual {worst:.3g}, {summary['unplaced']['count']} unplaced, "
                 f"{summary['runtime_s']:.2f} s")
     worst = max(v for v in summary["rms_px_per_view"] if v is not None)
-    method = "bundle adjustment" if summary["solver"] == "bundle" else "COLMAP's mapper"
+    method = "bundle adjustment" if summary["solver"] == "bundle" \
+        else f"COLMAP's {COLMAP_SOLVERS[summary['solver']]} mapper"
     return (where + f"cameras, {summary['camera']} camera, {method}): reprojection RMS "
             f"{summary['reprojection_rms_px']:.3g} px (worst view {worst:.3g} px), "
             f"{summary['dropped']['count']} wrong matches dropped, "
             f"{summary['unplaced']['count']} unplaced, {summary['runtime_s']:.2f} s")
+
+
+def _reference(text: str, photos: str):
+    """The reference poses, read (and refused in one line) before any photo is
+    read; a Bundler file without its list.txt names its cameras by the photos."""
+    from mpe3d.harness.userdata.photo_folder import list_photos
+    from mpe3d.harness.userdata.references import read_reference
+
+    names = list_photos(Path(photos)) if Path(photos).is_dir() else None
+    try:
+        return read_reference(text, names)
+    except MpeError as exc:
+        raise type(exc)(f"--reference {exc}") from None
+
+
+def _scored(reference, result, seed: int) -> dict:
+    """The report's ``reference`` entry: :func:`score_poses` and what was read (NaN written as null)."""
+    from mpe3d.harness.scene.metrics import score_poses
+    from mpe3d.harness.userdata.references import poses_of
+
+    scores = score_poses(reference, poses_of(result), random_state=seed)
+    return {k: None if isinstance(v, float) and v != v else v for k, v in scores.items()} \
+        | {"source": reference.source}
+
+
+def _pose_summary(scores: dict) -> str:
+    """``; pose AUC@3 71.2 (AUC@1/5/10 40.1/80.3/89.9), 11/11 photos registered``, for the summary line."""
+    others = "/".join(f"{scores[f'pose_auc{t}']:.1f}" for t in (1, 5, 10))
+    return (f"; pose AUC@3 {scores['pose_auc3']:.1f} (AUC@1/5/10 {others}), "
+            f"{scores['registered']}/{scores['photos']} photos registered")

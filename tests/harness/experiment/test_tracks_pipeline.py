@@ -1,4 +1,5 @@
 """pipeline=tracks: real keypoints as experiments (perturbed, solved, scored, swept, reported)."""
+import json
 import shutil
 
 import numpy as np
@@ -128,12 +129,12 @@ def test_the_realdata_sweep_runs_resumes_and_reports(tmp_path):
     first = run_cli(*args, "--quiet", cwd=tmp_path)
     assert first.returncode == 0, first.stderr
     again = run_cli(*args, cwd=tmp_path)
-    assert again.returncode == 0 and "all 18 runs are already tracked" in again.stdout
+    assert again.returncode == 0 and "all 24 runs are already tracked" in again.stdout
     moved = tmp_path / "moved"  # the same data elsewhere: the same runs
     for name in ("house", "dino"):
         shutil.copytree(REALDATA / name, moved / name)
     elsewhere = [f"tracks.root={moved}" if a.startswith("tracks.root=") else a for a in args]
-    assert "all 18 runs are already tracked" in run_cli(*elsewhere, cwd=tmp_path).stdout
+    assert "all 24 runs are already tracked" in run_cli(*elsewhere, cwd=tmp_path).stdout
     out = tmp_path / "report"
     done = run_cli("report", "--sweep", str(REPO / "sweeps" / "realdata.yaml"), f"tracks.root={REALDATA}",
                    "tracks.views=6", "--scale", "quick", "--out", str(out), "--tracking-uri", uri, cwd=tmp_path)
@@ -141,6 +142,7 @@ def test_the_realdata_sweep_runs_resumes_and_reports(tmp_path):
     for name in ("house", "dino"):
         table = (out / "tables" / f"realdata_{name}.md").read_text()
         assert "bundle (perspective)" in table and "bundle (scaled)" in table and "colmap (radial)" in table
+        assert "colmap_global (radial)" in table
     assert "3D error, untouched points" in (out / "tables" / "realdata_house.md").read_text()
     assert (out / "figures" / "realdata_vs_wrong_fraction.png").stat().st_size > 10_000
 
@@ -181,24 +183,36 @@ def test_house_in_five_views_with_wrong_matches_keeps_its_clean_points():
 
 
 @pytest.mark.skipif(not (REALDATA / "house").is_dir(), reason="needs ../shared/realdata")
-def test_colmaps_mapper_is_a_method_of_the_tracks_pipeline_and_its_limits_are_checked():
+@pytest.mark.parametrize("solver", ["colmap", "colmap_global"])
+def test_colmaps_mapper_is_a_method_of_the_tracks_pipeline_and_its_limits_are_checked(solver):
     pytest.importorskip("pycolmap")
     base = {"pipeline": "tracks", "tracks.path": str(REALDATA / "house" / "keypoints.csv"),
-            "tracks.truth": str(REALDATA / "house" / "gt_points.csv"), "tracks.solver": "colmap",
+            "tracks.truth": str(REALDATA / "house" / "gt_points.csv"), "tracks.solver": solver,
             "tracks.camera": "radial", "tracks.wrong_fraction": 0.03}
     result = execute.run(make_config(base))
     assert result.metrics["registered_views"] == 10 and result.metrics["error_3d_median_pct"] < 1.0
     assert result.metrics["caught"] > 0  # COLMAP's filter drops wrong matches too
-    with pytest.raises(MpeError, match="^tracks.camera: tracks.solver=colmap: COLMAP has no affine camera; its "
+    with pytest.raises(MpeError, match=f"^tracks.camera: tracks.solver={solver}: COLMAP has no affine camera; its "
                                        "mapper takes camera auto or radial or perspective, got scaled"):
         make_config({**base, "tracks.camera": "scaled"})
-    with pytest.raises(MpeError, match="^tracks.loss: tracks.solver=colmap: bundle adjustment's; COLMAP's mapper "
+    with pytest.raises(MpeError, match=f"^tracks.loss: tracks.solver={solver}: bundle adjustment's; COLMAP's mapper "
                                        "has its own loss .a trivial one., so loss stays l2, got huber"):
         make_config({**base, "tracks.loss": "huber"})
     dino = execute.run(make_config({**base, "tracks.path": str(REALDATA / "dino" / "keypoints.csv"),
                             "tracks.truth": None, "tracks.views": 6}))
     assert dino.metrics["registered_views"] == 0 and np.isnan(dino.metrics["rms_px"])  # a result, not a crash
     assert "registered no two views" in dino.facts["warnings"][-1]
+
+
+@pytest.mark.skipif(not (REALDATA / "house").is_dir(), reason="needs ../shared/realdata")
+def test_colmaps_global_mapper_runs_from_the_command_line():
+    pytest.importorskip("pycolmap")
+    done = run_cli("run", "pipeline=tracks", f"tracks.path={REALDATA / 'house' / 'keypoints.csv'}",
+                   "tracks.solver=colmap_global", "tracks.camera=radial", "--json")
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout)
+    assert result["config"]["tracks"]["solver"] == "colmap_global" and result["registered_views"] == 10
+    assert result["rms_px"] < 1.0
 
 
 def _pinhole_track_set(folder, n_points=60, n_views=5, thin=None, scrambled=None):

@@ -6,11 +6,11 @@ import pytest
 from PIL import Image
 
 from mpe3d.cli import main
-from mpe3d.errors import MpeError
+from mpe3d.errors import MpeError, Unregistered
 from mpe3d.harness.scene import rendering, shapes
 from mpe3d.harness.userdata import photo_folder, photos
 from mpe3d.harness.userdata.formats import read_points
-from mpe3d.harness.userdata.reconstruct import reconstruct
+from mpe3d.harness.userdata.reconstruct import prepare, reconstruct
 from mpe3d.solvers.sfm import colmap, colmap_mapper
 from mpe3d.solvers.sfm.tracks import Tracks
 from tests.helpers import close_up_keypoints, similarity_rms
@@ -50,8 +50,9 @@ def _centre_error(report: dict, true_centres: dict) -> float:
     return 100 * similarity_rms(np.array(est), true) / np.linalg.norm(np.ptp(true, axis=0))
 
 
-@pytest.mark.parametrize("solver", ["bundle", "colmap"])
-def test_a_folder_of_photos_reconstructs_end_to_end(shoot, tmp_path, capsys, solver):
+@pytest.mark.parametrize("solver, method", [("bundle", "bundle adjustment"), ("colmap", "COLMAP's incremental mapper"),
+                                            ("colmap_global", "COLMAP's global mapper")])
+def test_a_folder_of_photos_reconstructs_end_to_end(shoot, tmp_path, capsys, solver, method):
     folder, true_centres = shoot
     out, report = tmp_path / "cloud.csv", tmp_path / "report.json"
     assert main(["reconstruct", str(folder), "--out", str(out), "--report", str(report),
@@ -65,7 +66,9 @@ def test_a_folder_of_photos_reconstructs_end_to_end(shoot, tmp_path, capsys, sol
     points, ids = read_points(out)
     assert len(points) == len(ids) == summary["points"]  # every track, its id beside it
     assert summary["unplaced"]["count"] < summary["points"] / 2
-    assert ("COLMAP's mapper" if solver == "colmap" else "bundle adjustment") in capsys.readouterr().out
+    assert method in capsys.readouterr().out
+    if solver != "bundle":  # COLMAP's time split: its verification of the tracks' matches, then its mapper
+        assert set(summary["colmap_seconds"]) == {"verify_s", "map_s"}
 
 
 def test_a_photo_reconstruction_writes_a_colmap_model(shoot, tmp_path):
@@ -121,19 +124,45 @@ def test_an_exif_focal_length_is_kept_only_when_plausible(shoot, tmp_path):
     assert "focal_px" not in facts[212]
 
 
-def test_colmap_solves_any_keypoint_input_with_the_users_ids(tmp_path):
+@pytest.mark.parametrize("solver", ["colmap", "colmap_global"])
+def test_colmap_solves_any_keypoint_input_with_the_users_ids(solver):
     views = close_up_keypoints(n=200, views=8)
     ids = np.arange(200) * 7 + 3  # ids of the user's, not row numbers
     views = [{"ids": ids[v["ids"]], "xy": v["xy"]} for v in views]
-    result = reconstruct(views, solver="colmap", principal_point=(200.0, 200.0))
+    result = reconstruct(views, solver=solver, principal_point=(200.0, 200.0))
     ours = reconstruct(views, principal_point=(200.0, 200.0))
-    assert result.facts["solver"] == "colmap" and set(result.ids) == set(ids)
+    assert result.facts["solver"] == solver and set(result.ids) == set(ids)
     placed = ~np.isin(result.ids, result.unplaced)
     assert placed.sum() >= 180 and result.facts["reprojection_rms_px"] < 0.6
     row = {i: r for r, i in enumerate(ours.ids.tolist())}
     order = [row[i] for i in result.ids[placed].tolist()]
     assert similarity_rms(result.points[placed], ours.points[order]) < 1e-2 * np.ptp(ours.points)
     assert set(result.facts["colmap_seconds"]) == {"verify_s", "map_s"}
+
+
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_colmaps_mappers_repeat_with_a_seed_and_one_thread(mapper):
+    """With one thread every random choice of COLMAP takes the seed: the same
+    seed, the same cameras and points to the last bit (module docstring of
+    :mod:`mpe3d.solvers.sfm.colmap`)."""
+    tracks = Tracks.from_observations(prepare(close_up_keypoints(n=200, views=8), solver="colmap").observations)
+    runs = [colmap_mapper.colmap_map(tracks, seed=3, threads=1, principal_point=(200.0, 200.0), mapper=mapper)
+            for _ in range(2)]
+    assert runs[0].registered.all() and f"COLMAP's {mapper} mapper" in runs[0].termination
+    assert np.array_equal(runs[0].cameras.vector(), runs[1].cameras.vector())
+    assert np.array_equal(runs[0].cameras.rotations, runs[1].cameras.rotations)
+    assert np.array_equal(runs[0].points, runs[1].points)
+
+
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_tracks_colmap_cannot_register_are_unregistered(mapper):
+    """12 tracks: every pair of views shares 12 matches, under the 15 inliers
+    COLMAP's verification asks of a pair, so no mapper has a pair to start from."""
+    tracks = Tracks.from_observations(prepare(close_up_keypoints(n=12, views=4), solver="colmap").observations)
+    with pytest.raises(Unregistered, match=f"^COLMAP's {mapper} mapper registered no two views"):
+        colmap_mapper.colmap_map(tracks, mapper=mapper)
+    with pytest.raises(MpeError, match="^mapper: 'glomap' is not one of incremental, global"):
+        colmap_mapper.colmap_map(tracks, mapper="glomap")
 
 
 def test_track_matches_link_every_pair_of_a_tracks_observations():
@@ -145,20 +174,23 @@ def test_track_matches_link_every_pair_of_a_tracks_observations():
     assert np.all(pairs[:, 0] < pairs[:, 1]) and np.all(tracks.view[rows] == pairs)
 
 
-def test_colmap_refuses_what_it_cannot_be_asked():
+@pytest.mark.parametrize("solver", ["colmap", "colmap_global"])
+def test_colmap_refuses_what_it_cannot_be_asked(solver):
     views = close_up_keypoints(n=60, views=4)
-    for kwargs, message in (({"camera": "scaled"}, "camera='scaled': COLMAP has no affine camera; its mapper "
-                                                   "takes camera auto or radial or perspective"),
-                            ({"loss": "huber"}, "loss='huber': bundle adjustment's; COLMAP's mapper has its own "
-                                                "loss .a trivial one., so loss stays l2"),
-                            ({"start": "file"}, "start='file': bundle adjustment's; .*, so start stays own"),
-                            ({"outlier_threshold": 5.0}, "outlier_threshold=5.0: bundle adjustment's; COLMAP's "
-                                                         "mapper has its own filter .4 px., so "
-                                                         "outlier_threshold stays 20.0"),
-                            ({"objective": "stress"}, "minimises the reprojection error"),
-                            ({"projections": np.tile(np.eye(3)[:2], (4, 1, 1))}, "known projections")):
+    named = f"solver='{solver}': "
+    for kwargs, message in (({"camera": "scaled"}, f"^camera='scaled': {named}COLMAP has no affine camera; its "
+                                                   "mapper takes camera auto or radial or perspective$"),
+                            ({"loss": "huber"}, f"^loss='huber': {named}bundle adjustment's; COLMAP's mapper has "
+                                                "its own loss .a trivial one., so loss stays l2$"),
+                            ({"start": "file"}, f"^start='file': {named}bundle adjustment's; .*, so start stays own$"),
+                            ({"outlier_threshold": 5.0}, f"^outlier_threshold=5.0: {named}bundle adjustment's; "
+                                                         "COLMAP's mapper has its own filter .4 px., so "
+                                                         "outlier_threshold stays 20.0$"),
+                            ({"objective": "stress"}, f"^solver='{solver}' minimises the reprojection error"),
+                            ({"projections": np.tile(np.eye(3)[:2], (4, 1, 1))},
+                             f"^views: solver='{solver}' estimates the cameras; known projections")):
         with pytest.raises(MpeError, match=message):
-            reconstruct(views, solver="colmap", **kwargs)
+            reconstruct(views, solver=solver, **kwargs)
     with pytest.raises(MpeError, match="solver='sgd' is a stress solver"):
         reconstruct(views, solver="sgd", objective="reprojection")
     assert reconstruct(views, solver="sgd").objective == "stress"  # a stress solver named: the stress
@@ -207,7 +239,8 @@ def test_a_database_without_matches_is_one_line(shoot, tmp_path, capsys):
     assert len(err.splitlines()) == 1 and "holds no matches" in err and not out.exists()
 
 
-def test_photos_colmap_cannot_register_are_one_line(tmp_path, capsys):
+@pytest.mark.parametrize("solver", ["colmap", "colmap_global"])
+def test_photos_colmap_cannot_register_are_one_line(tmp_path, capsys, solver):
     """Two photos of a flat wall of random texture, one turned: matches, no 3D."""
     folder = tmp_path / "wall"
     folder.mkdir()
@@ -216,7 +249,7 @@ def test_photos_colmap_cannot_register_are_one_line(tmp_path, capsys):
     for k in range(3):
         Image.fromarray(np.roll(texture, 3 * k, axis=1)).save(folder / f"{k}.png")
     out = tmp_path / "cloud.ply"
-    code = main(["reconstruct", str(folder), "--solver", "colmap", "--out", str(out)])
+    code = main(["reconstruct", str(folder), "--solver", solver, "--out", str(out)])
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1 and not out.exists(), err
 
