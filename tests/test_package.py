@@ -16,7 +16,9 @@ from tests.helpers import PACKAGE_DIRS, REPO
 PUBLIC = {"reconstruct", "write_cloud", "solve", "View", "Observations", "run", "make_config",
           "load_sweep", "Tracker",
           # for plug-in authors: the decorators, the option rules, the result type
-          "register_solver", "register_dataset", "Interval", "Choice", "Reconstruction"}
+          "register_solver", "register_dataset", "Interval", "Choice", "Reconstruction",
+          # for SfM plug-ins: the decorator and what the method returns
+          "register_sfm", "SfmPose", "SfmResult"}
 
 
 def test_the_public_api_is_small_documented_and_resolves():

@@ -77,7 +77,7 @@ def test_bad_plugins_are_one_line_naming_the_file_and_exit_2(plugin, tmp_path):
                    r"ZeroDivisionError"),
         "clash": (edited(plugin, '"avgmds"', '"sgd"', "clash"),
                   r"plug-in clash .*: solver 'sgd' is already registered by mpe3d itself; rename yours"),
-        "empty": (tmp_path / "empty.py", "registers no solver and no dataset"),
+        "empty": (tmp_path / "empty.py", "registers no solver, no dataset and no SfM method"),
         "missing": (tmp_path / "nowhere.py", r"plug-in .*nowhere\.py: no such file"),
         "exits": (edited(plugin, "import numpy as np", "import sys\nsys.exit(3)", "exits"),
                   "failed to load at exits.py line 9: SystemExit: 3"),

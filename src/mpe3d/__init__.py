@@ -9,7 +9,9 @@ The public API, one name per job:
 - :func:`make_config` and :func:`run`: one experiment of the harness (a scene
   made from a mesh, observed, solved and scored against its ground truth);
 - :func:`load_sweep`: a YAML sweep file expanded into its run configs;
-- :class:`Tracker`: runs tracked in MLflow, e.g. as a pandas DataFrame.
+- :class:`Tracker`: runs tracked in MLflow, e.g. as a pandas DataFrame;
+- :func:`register_solver`, :func:`register_dataset` and :func:`register_sfm`
+  (with :class:`SfmPose` and :class:`SfmResult`): plug-ins of your own.
 
 Bad input raises :class:`mpe3d.errors.MpeError` (a ``ValueError``) with a
 one-line message. The subpackages are :mod:`mpe3d.solvers` (one module per
@@ -44,6 +46,9 @@ _PUBLIC = {
     "Choice": "mpe3d.options",
     "Reconstruction": "mpe3d.solvers",
     "register_dataset": "mpe3d.harness.scene.shapes",
+    "register_sfm": "mpe3d.solvers.sfm.methods",
+    "SfmPose": "mpe3d.solvers.sfm.methods",
+    "SfmResult": "mpe3d.solvers.sfm.methods",
 }
 
 __all__ = list(_PUBLIC)

@@ -1,11 +1,12 @@
-"""Plug-ins: solvers and datasets that live outside mpe3d.
+"""Plug-ins: solvers, datasets and SfM methods that live outside mpe3d.
 
 Two ways in, as benchopt users asked for (its issue 654):
 
 - an installed distribution declares an entry point in the group
-  ``mpe3d.solvers`` or ``mpe3d.datasets`` whose value is a module; importing
-  that module registers what it holds with :func:`mpe3d.register_solver` or
-  :func:`mpe3d.register_dataset`. Entry points are read the first time a
+  ``mpe3d.solvers``, ``mpe3d.datasets`` or ``mpe3d.sfm`` whose value is a
+  module; importing that module registers what it holds with
+  :func:`mpe3d.register_solver`, :func:`mpe3d.register_dataset` or
+  :func:`mpe3d.register_sfm`. Entry points are read the first time a
   name is not found, so mpe3d pays nothing for them until then;
 - a plain Python file, named on the command line (``--plugin FILE``) or in a
   sweep file (``plugins: [FILE]``), loaded with :func:`load_file`.
@@ -41,7 +42,7 @@ from typing import Iterator, MutableMapping
 
 from mpe3d.errors import MpeError
 
-GROUPS = {"solver": "mpe3d.solvers", "dataset": "mpe3d.datasets"}  # kind -> entry-point group
+GROUPS = {"solver": "mpe3d.solvers", "dataset": "mpe3d.datasets", "sfm": "mpe3d.sfm"}  # kind -> entry-point group
 
 
 class PluginError(MpeError):
@@ -93,16 +94,20 @@ def add_registry(kind: str, registry: MutableMapping) -> None:
     _REGISTRIES[kind] = registry
 
 
-def claim(kind: str, name: str, func) -> Origin | None:
+def claim(kind: str, name: str, func, reserved: tuple[str, ...] = ()) -> Origin | None:
     """Called by a registry as ``name`` registers: its plug-in (``None``: ours).
 
     Raises :class:`PluginError` when a plug-in takes a name that another
-    plug-in or mpe3d already has.
+    plug-in or mpe3d already has, or one of ``reserved`` (names mpe3d's own
+    methods of that kind answer to without being in the registry).
     """
     found = _origin_of(func)
     if found is None:  # ours, even when a plug-in's import is what imported it
         return None
     origin = _state["loading"] or found
+    if name in reserved:
+        raise PluginError(f"{origin}: {kind} '{name}' is one of mpe3d's own ({', '.join(reserved)}); "
+                          "rename yours")
     taken = name in _REGISTRIES.get(kind, {})
     holder = _OWNERS.get((kind, name))
     if taken and (holder is None or holder.path != origin.path):
@@ -145,8 +150,9 @@ def _loading(origin: Origin) -> Iterator[None]:
     try:
         yield
         if not _state["added"]:
-            raise PluginError(f"{origin}: registers no solver and no dataset (decorate a function "
-                              "with mpe3d.register_solver or mpe3d.register_dataset)")
+            raise PluginError(f"{origin}: registers no solver, no dataset and no SfM method (decorate "
+                              "a function with mpe3d.register_solver, mpe3d.register_dataset or "
+                              "mpe3d.register_sfm)")
     except BaseException:
         for kind, name in _state["added"]:
             _REGISTRIES.get(kind, {}).pop(name, None)

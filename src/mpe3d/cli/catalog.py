@@ -1,5 +1,5 @@
 """``mpe3d solvers``, ``mpe3d shapes`` and ``mpe3d check-solver``: what is
-installed, and whether a solver keeps the solver contract."""
+installed, and whether a solver (or an SfM plug-in) keeps its contract."""
 
 from __future__ import annotations
 
@@ -13,12 +13,14 @@ def add_parsers(sub) -> None:
     listing = sub.add_parser("solvers", help="list solvers and their options, plug-ins in their own group")
     add_plugins(listing)
     listing.set_defaults(func=cmd_solvers)
-    check = sub.add_parser("check-solver", help="check a solver against the solver contract",
+    check = sub.add_parser("check-solver", help="check a solver or SfM plug-in against its contract",
                            description="Run solver NAME on small scenes and check the contract every "
                            "solver keeps (result shapes, orthonormal projections, one result per seed, "
-                           "option rules, observations only, coordinates, exactness if claimed). One "
+                           "option rules, observations only, coordinates, exactness if claimed). An SfM "
+                           "plug-in runs on synthetic pinhole photos instead (result types and shapes, one "
+                           "result per seed, relative poses within 5 degrees of the truth). One "
                            "line per check; exit code 0 if all pass, 1 if one fails.")
-    check.add_argument("name", metavar="NAME", help="a registered solver (see mpe3d solvers)")
+    check.add_argument("name", metavar="NAME", help="a registered solver or SfM plug-in (see mpe3d solvers)")
     check.add_argument("--seed", type=int, default=0, help="the scenes' and the solver's seed (default 0)")
     add_plugins(check)
     check.set_defaults(func=cmd_check_solver)
@@ -61,14 +63,39 @@ def cmd_solvers(args) -> int:
                 print(f"    solver.{option}={default}  ({spec.constraints[option]})")
             if spec.uses_init:
                 print("    init=smart|random  (the starting point)")
+    _list_sfm()
     for line in plugins.failures():
         print(f"not loaded: {line}")
     return 0
 
 
-def cmd_check_solver(args) -> int:
-    from mpe3d.harness.experiment.contract import run_checks
+def _list_sfm() -> None:
+    """The SfM plug-ins, in a group of their own (mpe3d's own SfM methods are
+    ``reconstruct --solver`` values, listed by its help)."""
+    from mpe3d.solvers.sfm.methods import SFM_METHODS
 
+    if SFM_METHODS:
+        print("structure-from-motion plug-ins:")
+    for method in sorted(SFM_METHODS.values(), key=lambda m: m.name):
+        print(f"  {method.name:<9} {method.summary or 'an SfM method'}  (from {method.origin})")
+
+
+def cmd_check_solver(args) -> int:
+    from mpe3d import plugins, solvers
+    from mpe3d.solvers.sfm.methods import SFM_METHODS
+
+    plugins.load_entry_points()
+    if args.name not in solvers.SOLVERS and args.name not in SFM_METHODS:
+        from mpe3d.errors import MpeError, suggest
+
+        raise MpeError(f"unknown solver '{args.name}' (solvers: {', '.join(sorted(solvers.SOLVERS))}; "
+                       f"SfM plug-ins: {', '.join(sorted(SFM_METHODS)) or 'none'})"
+                       + plugins.failure_note("solver") + plugins.failure_note("sfm"),
+                       hint=suggest(args.name, [*solvers.SOLVERS, *SFM_METHODS]))
+    if args.name in SFM_METHODS and args.name not in solvers.SOLVERS:
+        from mpe3d.harness.experiment.sfm_contract import run_sfm_checks as run_checks
+    else:
+        from mpe3d.harness.experiment.contract import run_checks
     checks = run_checks(args.name, args.seed)
     for check in checks:
         print(check.line())
