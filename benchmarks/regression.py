@@ -105,12 +105,10 @@ def _spiral_bundle(folder: Path) -> None:
 
 def _photos(count: int) -> Callable[[Path], None]:
     def make(folder: Path) -> None:
-        from colmap_parity import spiral
-
         from mpe3d.harness.scene import rendering, shapes
 
-        rendering.save_images(rendering.render(shapes.load_shape("chair"), spiral(count, 400, 0), seed=0),
-                              folder / "images")
+        rendering.save_images(rendering.render(shapes.load_shape("chair"), rendering.photo_spiral(count, 400, 0),
+                                               seed=0), folder / "images")
     make.__name__ = f"photos_{count}"
     return make
 
@@ -147,7 +145,7 @@ def _digest(make: Callable) -> str:
     import mpe3d.harness.scene.rendering as rendering
 
     text = inspect.getsource(make) + "".join(inspect.getsource(m) for m in (rendering, observe))
-    for name in ("bundle_scale.py", "colmap_parity.py"):
+    for name in ("bundle_scale.py",):
         text += (HERE / name).read_text()
     closure = [c.cell_contents for c in (make.__closure__ or ())]
     return hashlib.sha256((text + repr(closure)).encode()).hexdigest()[:12]

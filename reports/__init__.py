@@ -11,5 +11,5 @@ May import: :mod:`mpe3d.harness.experiment`, :mod:`mpe3d.harness.scene`,
 :mod:`mpe3d.harness.tracking` and :mod:`mpe3d.solvers`. Never the command line.
 """
 
-__all__ = ["assemble", "claims", "document", "figures", "load", "paper", "runs_table", "summary", "tables",
+__all__ = ["assemble", "claims", "document", "figures", "load", "paper", "photos", "runs_table", "summary", "tables",
            "tracks", "viewer"]

@@ -15,7 +15,7 @@ from typing import Callable
 import pandas as pd
 
 from mpe3d.harness.tracking.identity import code_identity, is_current
-from mpe3d.reports import figures, tables, tracks
+from mpe3d.reports import figures, photos, tables, tracks
 from mpe3d.reports.claims import claim_lines, claims_table
 from mpe3d.reports.document import Report
 from mpe3d.reports.load import CD, EMD, METRIC_LABELS, ROA, finished, published, varying_columns
@@ -282,6 +282,8 @@ def write_section(report: Report, section: Section) -> None:
         experiment.write(rows, report)
     elif "pipeline" in rows and (rows["pipeline"] == "tracks").all():
         tracks.write_section(rows, report, list(section.varying))
+    elif photos.is_photos(rows):  # its failed runs too: the table counts them
+        photos.write_section(section.frame[section.frame["pipeline"] == "photos"], report)
     else:
         _generic(rows, report, list(section.varying))
     report.note = ""

@@ -18,6 +18,7 @@ import yaml
 from mpe3d.errors import MpeError, coerce, suggest
 from mpe3d.options import (
     CAMERAS,
+    COLMAP_SOLVERS,
     INITS,
     OBJECTIVES,
     OUTLIER_THRESHOLD,
@@ -40,10 +41,14 @@ NOISE_VIEWS = ("one", "all")
 NOISE_ROWS = ("per_view", "shared")
 OBSERVE = ("distances", "coordinates")
 ALIGNS = ("rigid", "ransac4")
-PIPELINE_NAMES = ("points", "colmap", "tracks")  # execute.pipeline(name) runs them
+PIPELINE_NAMES = ("points", "colmap", "tracks", "photos")  # execute.pipeline(name) runs them
 # The files of a tracks run: hashed by their content, never by their path (config.hash)
 TRACK_FILES = ("tracks.path", "tracks.truth", "tracks.cameras")
 MATCHINGS = ("auto", "exhaustive", "sequential")
+RENDERED = "rendered"  # photos.set: the shape photographed along a spiral, exact reference poses
+EVERY_SET = "all"  # photos.set: a sweep makes one run per data set under photos.root
+# What a rendered photo set is made of: a run of a folder's data set ignores them
+RENDERING_KEYS = ("shape", "images.count", "images.size")
 BACKENDS = ("loky", "dask")  # where a sweep's runs are computed (the runner's choice)
 
 
@@ -86,11 +91,15 @@ KEYS: dict[str, Key] = {
     "tracks.camera": Key("auto", str, "pipeline tracks, objective reprojection: the camera model (auto: scaled or perspective, whichever explains the keypoints better; radial: the Bundler/BAL pinhole with k1, k2)", CAMERAS, hashed_at_default=False),
     "tracks.loss": Key("l2", str, "pipeline tracks: the robust loss of the reprojection error (scale 1 px), or refine's loss of the stress (l2, huber, soft_l1)", REPROJECTION_LOSSES, hashed_at_default=False),
     "tracks.outlier_threshold": Key(OUTLIER_THRESHOLD, float, "pipeline tracks, objective reprojection: observations beyond this many robust sigmas are taken for wrong matches and dropped (.inf keeps all)", hashed_at_default=False, rule=OUTLIER_THRESHOLDS, unit="(.inf keeps every observation)"),
-    "tracks.solver": Key("bundle", str, "pipeline tracks, objective reprojection: who minimises the reprojection error, mpe3d's bundle adjustment or COLMAP's geometric verification and incremental mapper (pycolmap) on the same perturbed tracks (camera auto, radial or perspective; loss l2; start own)", REPROJECTION_SOLVERS, hashed_at_default=False),
+    "tracks.solver": Key("bundle", str, "pipeline tracks, objective reprojection: who minimises the reprojection error, bundle (mpe3d's bundle adjustment), colmap (COLMAP's geometric verification and incremental mapper, pycolmap) or colmap_global (the same verification and COLMAP's global mapper, GLOMAP's) on the same perturbed tracks (COLMAP's: camera auto, radial or perspective; loss l2; start own)", REPROJECTION_SOLVERS, hashed_at_default=False),
     "tracks.start": Key("own", str, "pipeline tracks: where bundle adjustment starts: mpe3d's own start, or the cameras and points of a Bundler or BAL file", STARTS, hashed_at_default=False),
-    "images.count": Key(250, int, "pipeline colmap: photos rendered along the camera spiral", hashed_at_default=False, rule=Interval(int, 2, None)),
-    "images.size": Key(400, int, "pipeline colmap: width and height of each photo in pixels", hashed_at_default=False, rule=Interval(int, 64, 4096), unit="pixels"),
-    "images.matching": Key("auto", str, "pipeline colmap: COLMAP's matching: exhaustive, sequential along the camera path, or auto (exhaustive up to 50 photos)", MATCHINGS, hashed_at_default=False),
+    "photos.root": Key(None, str, "pipeline photos: the folder whose subfolders holding images/ are photo data sets (each one's reference poses, if any: sparse/0, sparse or a Bundler .out beside images/); not part of a run's identity", optional=True, hashed_at_default=False),
+    "photos.set": Key(RENDERED, str, "pipeline photos: the data set: rendered (shape photographed along a spiral of images.count photos of images.size pixels, turned and textured by seed, exact reference poses), a subfolder of photos.root, or all (a sweep makes one run per subfolder; runs are identified by the photos' and reference's content)", hashed_at_default=False),
+    "photos.solver": Key("bundle", str, "pipeline photos: the structure-from-motion method given the data set's tracks (features and matches computed once and shared): bundle (mpe3d's bundle adjustment), colmap (COLMAP's incremental mapper), colmap_global (COLMAP's global mapper) or an SfM plug-in's name", hashed_at_default=False),
+    "photos.cache": Key(None, str, "pipeline photos: the folder features and matches are cached in, by the photos' content and the extraction's options and code (null: $XDG_CACHE_HOME/mpe3d/features); not part of a run's identity", optional=True, hashed_at_default=False),
+    "images.count": Key(250, int, "pipelines colmap and photos (rendered): photos rendered along the camera spiral", hashed_at_default=False, rule=Interval(int, 2, None)),
+    "images.size": Key(400, int, "pipelines colmap and photos (rendered): width and height of each photo in pixels", hashed_at_default=False, rule=Interval(int, 64, 4096), unit="pixels"),
+    "images.matching": Key("auto", str, "pipelines colmap and photos: COLMAP's matching: exhaustive, sequential along the camera path, or auto (exhaustive up to 50 photos)", MATCHINGS, hashed_at_default=False),
     "shape": Key("chair", str, "bundled name, mesh path, shapenet:<synset>/<id>, pix3d:<category>/<model>, or torus|box|sphere|cone"),
     "points": Key(512, int, "number N of points sampled area-uniformly on the surface", rule=Interval(int, 4, None)),
     "views": Key(4, int, "number K of views", rule=Interval(int, 2, None)),
@@ -167,6 +176,14 @@ class RunConfig:
             for key in TRACK_FILES:
                 if key in flat:
                     flat[key] = content_digest(track_file(self.values, key))
+        if self.values["pipeline"] == "photos":  # the photos and their reference, not where they lie
+            flat.pop("photos.root", None)
+            flat.pop("photos.cache", None)
+            folder = photo_set_folder(self.values)
+            if folder is not None:
+                from mpe3d.harness.userdata.photo_sets import dataset_digest
+
+                flat["photos.set"] = dataset_digest(folder)
         payload = json.dumps({"schema": SCHEMA_VERSION, "config": flat},
                              sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
@@ -328,6 +345,8 @@ def _check_ranges(v: dict[str, Any]) -> None:
         raise bad("visibility.count", f"must be between 2 and points={v['points']}")
     if v["pipeline"] == "tracks":
         _check_tracks(v, bad)
+    if v["pipeline"] == "photos":
+        _check_photos(v)
     if v["observe"] == "coordinates" and v["noise.type"] == "distance":
         raise MpeError("noise.type: distance noise perturbs distance matrices; with "
                        "observe=coordinates use correspondence noise", key="noise.type")
@@ -352,18 +371,43 @@ def _check_tracks(v: dict[str, Any], bad) -> None:
             hint = " (relative paths are under tracks.root=FOLDER, else the current folder)" \
                 if v["tracks.root"] is None and not path.is_absolute() else ""
             raise MpeError(f"{key}: {path}: no such file or folder{hint}", key=key)
-    if v["tracks.solver"] == "colmap" and v["tracks.objective"] == "reprojection":
+    if v["tracks.solver"] in COLMAP_SOLVERS and v["tracks.objective"] == "reprojection":
         from mpe3d.solvers.sfm.colmap_mapper import refused
 
         for option in ("camera", "loss", "start", "outlier_threshold"):
             reason = refused(option, v[f"tracks.{option}"])
             if reason is not None:
-                raise bad(f"tracks.{option}", f"tracks.solver=colmap: {reason}")
+                raise bad(f"tracks.{option}", f"tracks.solver={v['tracks.solver']}: {reason}")
     if v["tracks.objective"] == "stress":  # solver.name: any registered solver (make_config checks it)
         if v["tracks.loss"] not in STRESS_LOSSES:
             raise bad("tracks.loss", f"the stress takes {' or '.join(STRESS_LOSSES)}")
         if v["tracks.loss"] != "l2" and v["solver.name"] != "refine":
             raise bad("tracks.loss", "a robust loss of the stress needs solver.name=refine")
+
+
+def _check_photos(v: dict[str, Any]) -> None:
+    from mpe3d.solvers.sfm.methods import BUILT_IN, get_sfm
+
+    if v["photos.solver"] not in BUILT_IN:  # else a plug-in's, registered by now
+        try:
+            get_sfm(v["photos.solver"])
+        except MpeError as exc:
+            raise MpeError(f"photos.solver: {exc.message}", key="photos.solver", hint=exc.hint) from None
+    if v["photos.set"] == EVERY_SET:  # a sweep expands it (to none without photos.root); a run takes one
+        return
+    if v["photos.set"] != RENDERED:
+        from mpe3d.harness.userdata.photo_sets import set_folder
+
+        set_folder(v["photos.root"], v["photos.set"])
+        for key in RENDERING_KEYS:  # a folder's photos are not rendered: these keys do not apply
+            v[key] = KEYS[key].default
+
+
+def photo_set_folder(values: Mapping[str, Any]) -> Path | None:
+    """The folder of a photos run's data set (None: a rendered set)."""
+    if values["photos.set"] in (RENDERED, EVERY_SET):
+        return None
+    return Path(values["photos.root"]).expanduser() / values["photos.set"]
 
 
 def make_config(overrides: Mapping[str, Any] | None = None,

@@ -20,7 +20,7 @@ import json
 import logging
 from pathlib import Path
 
-from mpe3d.harness.experiment.config import RunConfig, track_file
+from mpe3d.harness.experiment.config import RENDERED, RunConfig, photo_set_folder, track_file
 
 DIGEST_CHARS = 16  # MLflow keeps a data set's digest in at most 36 characters
 NAME_CHARS = 500  # and its name in at most this many
@@ -35,6 +35,8 @@ def dataset_of(config: RunConfig) -> dict[str, str]:
     try:
         if config["pipeline"] == "tracks":
             return _tracks(config)
+        if config["pipeline"] == "photos" and config["photos.set"] != RENDERED:
+            return _photo_folder(config)
         return _shape(config)
     except Exception:  # noqa: BLE001  (a plug-in's data set may raise anything)
         _LOG.warning("no MLflow data set for the run of %s", config["shape"], exc_info=True)
@@ -50,19 +52,37 @@ def _tracks(config: RunConfig) -> dict[str, str]:
             "source_type": "local", "source": _uri(path), "profile": json.dumps({"kind": "keypoint tracks"})}
 
 
+def _photo_folder(config: RunConfig) -> dict[str, str]:
+    from mpe3d.harness.userdata.photo_sets import IMAGES, dataset_digest
+
+    folder = photo_set_folder(config.values)
+    photos = sum(1 for p in (folder / IMAGES).iterdir() if p.is_file())
+    return {"name": str(config["photos.set"])[-NAME_CHARS:], "digest": _short(dataset_digest(folder)),
+            "source_type": "local", "source": _uri(folder), "profile": json.dumps({"files": photos})}
+
+
+def shape_data(spec: str) -> str:
+    """What a shape's data is: its mesh file's bytes, or a procedural or plug-in name."""
+    from mpe3d.harness.scene import shapes
+    from mpe3d.harness.userdata.formats import content_digest
+
+    mesh = shapes.mesh_file(spec)
+    return f"shape:{spec}" if mesh is None else content_digest(mesh)
+
+
 def _shape(config: RunConfig) -> dict[str, str]:
     # here, not at the top: the parent process, which imports this module to
     # record a run whose worker died, need not load trimesh (0.5 s) for it
     from mpe3d.harness.scene import shapes
-    from mpe3d.harness.userdata.formats import content_digest
 
     spec = config["shape"]
     mesh = shapes.mesh_file(spec)
     # MLflow's own source formats (its CodeDatasetSource's, LocalArtifactDatasetSource's JSON)
-    source_type, source, data = ("code", json.dumps({"tags": {"mpe3d.shape": spec}}), f"shape:{spec}") \
-        if mesh is None else ("local", _uri(mesh), content_digest(mesh))
+    source_type, source = ("code", json.dumps({"tags": {"mpe3d.shape": spec}})) if mesh is None \
+        else ("local", _uri(mesh))
+    data = shape_data(spec)
     shown = spec if mesh is None or ":" in spec or spec in shapes.shape_names() else Path(spec).name  # a file: its name
-    if config["pipeline"] == "colmap":
+    if config["pipeline"] in ("colmap", "photos"):
         sampling = {"photos": config["images.count"], "size_px": config["images.size"]}
         name = f"{shown} photos"
     else:

@@ -17,7 +17,7 @@ from threadpoolctl import ThreadpoolController
 
 from mpe3d import plugins
 from mpe3d.errors import MpeError
-from mpe3d.harness.experiment.config import PIPELINE_NAMES, RunConfig
+from mpe3d.harness.experiment.config import PIPELINE_NAMES, RENDERED, RunConfig
 from mpe3d.harness.experiment.datasets import dataset_of
 from mpe3d.harness.experiment.limits import check_run_memory
 from mpe3d.harness.experiment.result import Pipeline, RunResult
@@ -43,6 +43,8 @@ PIPELINE_KEYS = {
                "visibility.", "noise.", "projections", "observe", "init", "align", "solver."),
     "colmap": ("pipeline", "seed", "shape", "points", "images."),
     "tracks": ("pipeline", "seed", "tracks.", "solver.name"),  # no option reaches its solvers
+    # a folder's run reads no rendering key (config normalises them), a rendered set's does
+    "photos": ("pipeline", "seed", "photos.", "shape", "images."),
 }
 
 
@@ -65,6 +67,8 @@ def pipeline(name: str) -> Pipeline:
         from mpe3d.harness.experiment import colmap_pipeline as chosen
     elif name == "tracks":
         from mpe3d.harness.experiment import tracks_pipeline as chosen
+    elif name == "photos":
+        from mpe3d.harness.experiment import photos_pipeline as chosen
     else:
         raise MpeError(f"pipeline: unknown pipeline '{name}' (use {' or '.join(PIPELINE_NAMES)})")
     return chosen
@@ -82,13 +86,15 @@ def expected_work(config: RunConfig) -> float:
         return 0.5 * config["images.count"]
     if pipeline_name == "tracks":
         return 2.0
+    if pipeline_name == "photos":  # a folder: its photos are unknown until read; a dozen is typical
+        return 0.5 * config["images.count"] if config["photos.set"] == RENDERED else 10.0
     n = config["points"] / 1024.0
     return n * n * (config["views"] + 1)
 
 
 def run(config: RunConfig) -> RunResult:
     """Run ``config``; the solver only ever sees the observations."""
-    if config["pipeline"] != "tracks":  # a tracks run samples no points
+    if config["pipeline"] in ("points", "colmap"):  # a tracks or photos run samples no points
         check_run_memory(config)  # before sampling: refuse what cannot fit, in one line
     with _blas_limit(), threads.limit(BLAS_THREADS):
         return _run(config)
@@ -116,6 +122,8 @@ def _run(config: RunConfig) -> RunResult:
 
 def code_of(config: RunConfig) -> str:
     """The identity of the code that computes ``config``: ours, and its plug-ins'."""
+    if config["pipeline"] == "photos":
+        return run_code(config.solver, config["shape"], sfm=config["photos.solver"])
     return run_code(config.solver, config["shape"])
 
 

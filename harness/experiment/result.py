@@ -36,7 +36,8 @@ class RunResult:
         out["warnings"] = self.facts.get("warnings", [])
         out["termination"] = self.reconstruction.termination
         out["wall_s"] = self.wall_s
-        out["code"] = run_code(self.config.solver, self.config["shape"])
+        sfm = self.config["photos.solver"] if self.config["pipeline"] == "photos" else None
+        out["code"] = run_code(self.config.solver, self.config["shape"], sfm=sfm)
         return out
 
 

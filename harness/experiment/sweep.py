@@ -25,14 +25,17 @@ from __future__ import annotations
 import hashlib
 import itertools
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 from mpe3d.errors import MpeError, suggest
+from mpe3d.harness.experiment.axes import every_photo_set, varying_keys
 from mpe3d.harness.experiment.config import (
     ALIASES,
     KEYS,
+    RENDERED,
+    RENDERING_KEYS,
     RunConfig,
     coerce_value,
     flatten,
@@ -68,6 +71,8 @@ class Sweep:
     def label(self, config: RunConfig) -> str:
         """``views=4 projections=fixed seed=0``: what sets this run apart."""
         flat = config.flat()  # a solver's run names none of the other solvers' options
+        if flat["pipeline"] == "photos" and flat["photos.set"] != RENDERED:  # a folder's photos are not rendered
+            flat = {k: v for k, v in flat.items() if k not in RENDERING_KEYS}
         return " ".join(f"{key}={flat[key]}" for key in self.varying if key in flat) or config.hash()
 
 
@@ -394,7 +399,7 @@ def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
     axes = _grid_axes(data.get("grid"), src) + _zip_axes(data.get("zip"), src)
     _check_axes_disjoint(base, axes, bool(seeds), src)
     _check_shapes(base, axes, src)
-    runs = _expand(base, axes + ([seeds] if seeds else []), src)
+    runs = every_photo_set(_expand(base, axes + ([seeds] if seeds else []), src), src.where("photos.root"))
     unique: dict[str, RunConfig] = {}
     for config in runs:  # the first of identical grid points wins
         unique.setdefault(config.hash(), config)
@@ -424,51 +429,3 @@ def _load_plugins(value, path: Path, src: "_Source") -> tuple[Path, ...]:
         except PluginError as exc:
             raise src.error(f"plugins: {exc}", "plugins") from None
     return files
-
-
-def add_solvers(sweep: Sweep, names: Sequence[str]) -> Sweep:
-    """``sweep`` with solvers ``names`` put on its solver axis.
-
-    A sweep has a solver axis when its ``points`` runs use two solvers or
-    more (one compared with another); each such run is then run again with
-    each added solver, in the settings (fixed, variable) the solver declares.
-    The sweep's own runs, and so their hashes and tracked results, are
-    unchanged. A sweep without a solver axis is returned as it is.
-    """
-    from mpe3d.solvers import get_solver
-
-    points = [c for c in sweep.runs if c["pipeline"] == "points"]
-    if len({c.solver for c in points}) < 2:
-        return sweep
-    known = {c.hash() for c in sweep.runs}
-    added: dict[str, RunConfig] = {}
-    for name in names:
-        settings = get_solver(name).settings
-        for config in points:
-            if config["projections"] in settings:
-                other = config.replace(**{"solver.name": name})
-                if other.hash() not in known:
-                    added.setdefault(other.hash(), other)
-    runs = sweep.runs + tuple(added.values())
-    return replace(sweep, runs=runs, varying=varying_keys(runs),
-                   added=tuple(dict.fromkeys((*sweep.added, *names))))
-
-
-def varying_keys(configs: Iterable[RunConfig]) -> tuple[str, ...]:
-    """The dotted keys whose values differ between ``configs``, in key order.
-
-    A solver option varies only if the runs of one solver differ in it: that
-    other solvers lack it, or have another default, is not a difference.
-    """
-    flats = [c.flat() for c in configs]
-    keys = dict.fromkeys(k for flat in flats for k in flat)
-
-    def varies(key: str) -> bool:
-        option = key.startswith("solver.") and key != "solver.name"
-        seen: dict[object, set[str]] = {}
-        for flat in flats:
-            if key in flat:
-                seen.setdefault(flat["solver.name"] if option else None, set()).add(repr(flat[key]))
-        return any(len(values) > 1 for values in seen.values())
-
-    return tuple(k for k in keys if varies(k))

@@ -295,14 +295,17 @@ def plugin_identity(origin) -> str:
     return f"{origin.name}-{origin.version or 'file'}/{_FINGERPRINTS[key]}"
 
 
-def run_code(solver: str, shape: str) -> str:
+def run_code(solver: str, shape: str, sfm: str | None = None) -> str:
     """The code identity of a run of ``solver`` on ``shape``: ours, and that of
-    each plug-in it uses (its solver; its dataset for ``shape=NAME:item``),
-    joined by ``+``. Editing a plug-in changes its runs' identity and no other's."""
+    each plug-in it uses (its solver; its dataset for ``shape=NAME:item``; its
+    structure-from-motion method ``sfm``), joined by ``+``. Editing a plug-in
+    changes its runs' identity and no other's."""
     from mpe3d import plugins
 
     plugins.load_entry_points()
     used = [plugins.owner("solver", solver), plugins.owner("dataset", shape.partition(":")[0])]
+    if sfm is not None:
+        used.append(plugins.owner("sfm", sfm))
     return "+".join([code_identity(), *(plugin_identity(o) for o in used if o)])
 
 

@@ -102,11 +102,15 @@ def with_solvers(sweeps, names):
     """``--solver NAME``: each sweep with NAME on its solver axis, where it has one."""
     if not names:
         return sweeps
-    from mpe3d.harness.experiment.sweep import add_solvers
-    from mpe3d.solvers import get_solver
+    from mpe3d.harness.experiment.axes import add_solvers
+    from mpe3d.solvers import SOLVERS, get_solver
+    from mpe3d.solvers.sfm.methods import SFM_METHODS, get_sfm
 
     for name in names:  # an unknown name fails before anything runs
-        get_solver(name)
+        if name not in SOLVERS and name in SFM_METHODS:
+            get_sfm(name)
+        else:
+            get_solver(name)
     return [add_solvers(sweep, names) for sweep in sweeps]
 
 

@@ -1,0 +1,123 @@
+"""A photo data set's features and matches, computed once and shared by every method.
+
+The ``photos`` pipeline compares structure-from-motion methods on identical
+matches, so SIFT and the matcher run once per data set, not once per run:
+their database is cached under ``photos.cache`` (default
+``$XDG_CACHE_HOME/mpe3d/features``) by a key made of
+
+* what the photos are: a folder's bytes (its content digest), or a rendered
+  set's inputs (the mesh's bytes, photo count, size and seed);
+* how they were matched: the extraction's options;
+* the code that made them: pycolmap's version and the fingerprint of every
+  module the photos and the database go through (:data:`FEATURE_CODE`), so
+  that features made by other code are never reused (they are made again).
+
+Runs of one data set in parallel workers wait on a lock for the first to
+finish rather than all extracting; an entry is written into a temporary
+folder and renamed into place, so a reader never sees half of one. The
+seconds the extraction and matching took when they were computed are kept
+with the entry, and every run reports them (``features_cached`` says whether
+it computed them itself).
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import shutil
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+from mpe3d.errors import MachineError
+from mpe3d.harness.files import cache_folder, no_space
+
+# The modules that make a data set's photos and database: a change to any makes them again.
+FEATURE_CODE = ("mpe3d.harness.scene.rendering", "mpe3d.harness.userdata.photo_folder",
+                "mpe3d.solvers.sfm.colmap", "mpe3d.harness.experiment.features")
+MAX_FEATURES = 8192  # SIFT features a photo, COLMAP's default and mpe3d reconstruct's
+DATABASE = "database.db"
+META = "features.json"
+
+
+@dataclass
+class Features:
+    """A data set's features and matches in a COLMAP database, and what they cost."""
+
+    database: Path
+    names: list[str]  # the photos extracted, in order
+    seconds: dict[str, float]  # extract_s, match_s (render_s for a rendered set), when computed
+    cached: bool  # read from the cache: this run did not compute them
+    notes: list[str] = field(default_factory=list)  # photos skipped, and why
+
+
+def cache_root(folder: str | None) -> Path:
+    """``photos.cache``, or the user's cache folder."""
+    return Path(folder).expanduser() if folder else cache_folder() / "features"
+
+
+def feature_key(what: dict) -> str:
+    """The cache key of the features of ``what`` (the photos and the options),
+    made by this code and this pycolmap."""
+    from mpe3d.harness.tracking.identity import module_file, source_fingerprint
+    from mpe3d.solvers.sfm import colmap
+
+    code = {name: source_fingerprint(module_file(name).read_text()) for name in FEATURE_CODE}
+    text = json.dumps({"what": what, "colmap_version": colmap.version(), "code": code}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:24]
+
+
+@contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    with open(path, "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)  # another worker extracting the same set: wait for it
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
+def _read(entry: Path) -> Features | None:
+    try:
+        meta = json.loads((entry / META).read_text())
+    except (OSError, ValueError):
+        return None  # no entry, or one this code cannot read: made again
+    if not (entry / DATABASE).is_file():
+        return None
+    return Features(entry / DATABASE, list(meta["names"]), dict(meta["seconds"]), True, list(meta["notes"]))
+
+
+def features(root: Path, key: str, make: Callable[[Path], tuple[list[str], dict, list[str]]]) -> Features:
+    """The features of ``key`` under ``root``: read, or made by ``make(folder)``
+    (which writes ``folder/database.db`` and returns the photo names, the
+    seconds of each step and notes) and kept."""
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        entry = root / key
+        with _locked(root / f"{key}.lock"):
+            found = _read(entry)
+            if found is not None:
+                return found
+            work = root / f".{key}.{os.getpid()}.tmp"
+            shutil.rmtree(work, ignore_errors=True)
+            work.mkdir()
+            try:
+                start = time.perf_counter()
+                names, seconds, notes = make(work)
+                seconds = {**seconds, "features_s": time.perf_counter() - start}
+                (work / META).write_text(json.dumps({"names": names, "seconds": seconds, "notes": notes}))
+                shutil.rmtree(entry, ignore_errors=True)  # an entry this code could not read
+                os.replace(work, entry)
+            finally:
+                shutil.rmtree(work, ignore_errors=True)
+    except OSError as exc:
+        if no_space(exc):
+            raise MachineError(f"photos.cache {root}: no space left for a data set's features "
+                               "(give photos.cache=DIR on a larger disk)") from None
+        raise MachineError(f"photos.cache {root}: cannot write the features there: "
+                           f"{exc.strerror or exc}") from None
+    return Features(entry / DATABASE, names, seconds, False, notes)
