@@ -229,6 +229,8 @@ def _apply_overrides(data: Mapping, lines: Mapping[str, Any], overrides: Sequenc
         key, value = parse_override(text)
         where = f"the command line ({text})"
         if key in ("repeats", "seeds", "name"):
+            if key != "name":  # one replaces the other, as in a scale
+                data.pop("seeds" if key == "repeats" else "repeats", None)
             data[key], lines[key] = value, where
             continue
         section = "grid" if key.startswith("grid.") else "base"

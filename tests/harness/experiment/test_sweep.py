@@ -238,3 +238,10 @@ def test_scale_errors_name_the_line_of_the_override(tmp_path):
         with pytest.raises(MpeError, match=message):
             load_sweep(p)
     assert load_sweep(write(tmp_path, "base: {shape: box}", "f.yaml"), "full").scales == ("full",)
+
+
+def test_seeds_given_on_the_command_line_replace_the_files_repeats_and_back(tmp_path):
+    path = write(tmp_path, "base: {points: 16}\nrepeats: 3\n")
+    assert [c["seed"] for c in load_sweep(path, overrides=["seeds=[5, 7]"]).runs] == [5, 7]
+    path = write(tmp_path, "base: {points: 16}\nseeds: [4, 8]\n", "t.yaml")
+    assert [c["seed"] for c in load_sweep(path, overrides=["repeats=2"]).runs] == [0, 1]

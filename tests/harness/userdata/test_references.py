@@ -205,3 +205,57 @@ def test_poses_rotate_by_rotation_matrix_of_cam_from_world():
     R = Rotation.from_euler("xyz", [10, 20, 30], degrees=True).as_matrix()
     pose = pycolmap.Rigid3d(np.column_stack([R, [1.0, 2.0, 3.0]]))
     assert pose.rotation.matrix() == pytest.approx(R) and pose * np.zeros(3) == pytest.approx([1, 2, 3])
+
+
+# -- Done when: every solver, photos of two cameras and sizes, COLMAP and Bundler references -------
+
+TWO = 12  # photos, alternately of a 320-px camera and a 224-px one of a shorter focal length
+
+
+@pytest.fixture(scope="module")
+def two_camera_sets(tmp_path_factory):
+    """The same photos of two cameras twice: with the rendering's poses as a
+    COLMAP model (sparse/0), and as a Bundler file named by its list.txt."""
+    from PIL import Image
+
+    spiral = rendering.spiral_cameras(TWO, size=320, turns=0.5)
+    small = rendering.PhotoCameras(spiral.rotations, spiral.translations, spiral.focal * 0.55, 224, 224)
+    mesh = shapes.load_shape("chair")
+    renders = rendering.render(mesh, spiral, seed=1), rendering.render(mesh, small, seed=1)
+    root = tmp_path_factory.mktemp("two")
+    names = [f"p{k:02d}.png" for k in range(TWO)]
+    for kind in ("colmap", "bundler"):
+        (root / kind / "images").mkdir(parents=True)
+        for k, name in enumerate(names):
+            Image.fromarray(renders[k % 2][k]).save(root / kind / "images" / name)
+    poses = {n: (spiral.rotations[k], spiral.translations[k]) for k, n in enumerate(names)}
+    write_colmap(root / "colmap" / "sparse" / "0", poses, size=320, focal=spiral.focal)
+    write_bundler(root / "bundler" / "bundle.out", [poses[n] for n in reversed(names)], focal=spiral.focal)
+    (root / "bundler" / "list.txt").write_text("".join(f"images/{n} 0 {spiral.focal}\n" for n in reversed(names)))
+    return root, poses
+
+
+def _reconstruct_scored(folder, reference, solver, tmp_path, capsys):
+    model, report = tmp_path / "M", tmp_path / "r.json"
+    assert main(["reconstruct", str(folder / "images"), "--reference", str(reference), "--out", f"{model}/",
+                 "--report", str(report), "--solver", solver]) == 0
+    capsys.readouterr()
+    written = pycolmap.Reconstruction(str(model))
+    estimated = {im.name: (im.cam_from_world().rotation.matrix(), im.cam_from_world().translation)
+                 for im in written.images.values() if im.has_pose}
+    return json.loads(report.read_text())["reference"], estimated
+
+
+@pytest.mark.parametrize("solver", ["bundle", pytest.param("colmap", marks=pytest.mark.slow),
+                                    pytest.param("colmap_global", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("kind", ["colmap", pytest.param("bundler", marks=pytest.mark.slow)])
+def test_every_solver_is_scored_as_colmaps_benchmark_scores_the_model_it_wrote(two_camera_sets, tmp_path, capsys,
+                                                                                solver, kind):
+    root, truth = two_camera_sets
+    reference = root / kind / ("sparse/0" if kind == "colmap" else "bundle.out")
+    scores, estimated = _reconstruct_scored(root / kind, reference, solver, tmp_path, capsys)
+    recomputed = colmap_eval.compute_auc(colmap_eval.compute_grouped_rel_errors(truth, estimated), [3])[0]
+    assert scores["pose_auc3"] == pytest.approx(recomputed, abs=0.5)
+    assert scores["photos"] == TWO and scores["registered"] == len(estimated) >= 2
+    if solver == "bundle":  # ours registers every photo of two cameras (1.2 degrees median, AUC@3 ~52)
+        assert scores["registered"] == TWO and scores["pose_auc3"] > 30
