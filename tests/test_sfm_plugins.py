@@ -99,12 +99,14 @@ def test_a_failing_sfm_plugin_exits_1_on_the_command_line(tmp_path):
     assert out.stdout.strip().endswith("nan: 0 of 2 checks pass; 2 to fix")
 
 
-@pytest.mark.parametrize("taken", [*BUILT_IN, "pinhole_bundle"])
+@pytest.mark.parametrize("taken", [*BUILT_IN, "pinhole_bundle", "refine"])
 def test_a_taken_sfm_name_is_refused_and_leaves_nothing_behind(tmp_path, taken):
     plugins.load_file(EXAMPLE)
     path = broken(tmp_path, "clash", '"clash"', f'"{taken}"')
     said = (f"sfm '{taken}' is one of mpe3d's own (bundle, colmap, colmap_global); rename yours"
             if taken in BUILT_IN else
+            "sfm 'refine' is already a solver of mpe3d itself; rename yours"  # --solver names both kinds
+            if taken == "refine" else
             f"sfm '{taken}' is already registered by plug-in sfm_plugin (file {EXAMPLE}); rename yours")
     with pytest.raises(plugins.PluginError, match=rf"^plug-in clash \(file .*clash\.py\): {re.escape(said)}$"):
         plugins.load_file(path)

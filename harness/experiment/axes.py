@@ -33,9 +33,15 @@ def every_photo_set(runs: list[RunConfig], where: str) -> list[RunConfig]:
                 names = photo_sets(config["photos.root"])
             except MpeError as exc:
                 raise exc.located(where) from None
-            out += [config.replace(**{"photos.set": name}) for name in names]
+            found = {}
+            for name in names:
+                run = config.replace(**{"photos.set": name})
+                same = found.setdefault(run.hash(), name)  # a run is its data's, not its folder's
+                if same != name:
+                    raise MpeError(f"photos.root: {name} and {same} hold the same photos and reference; "
+                                   f"keep one (at {where})", key="photos.root")
+                out.append(run)
     return out
-
 
 
 def add_solvers(sweep, names: Sequence[str]):

@@ -27,7 +27,6 @@ import hashlib
 import json
 import os
 import shutil
-import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,7 +36,7 @@ from mpe3d.errors import MachineError
 from mpe3d.harness.files import cache_folder, no_space
 
 # The modules that make a data set's photos and database: a change to any makes them again.
-FEATURE_CODE = ("mpe3d.harness.scene.rendering", "mpe3d.harness.userdata.photo_folder",
+FEATURE_CODE = ("mpe3d.harness.scene.shapes", "mpe3d.harness.scene.rendering", "mpe3d.harness.userdata.photo_folder",
                 "mpe3d.solvers.sfm.colmap", "mpe3d.harness.experiment.features")
 MAX_FEATURES = 8192  # SIFT features a photo, COLMAP's default and mpe3d reconstruct's
 DATABASE = "database.db"
@@ -73,7 +72,10 @@ def feature_key(what: dict) -> str:
 
 @contextmanager
 def _locked(path: Path) -> Iterator[None]:
-    with open(path, "a") as handle:
+    with _cache_errors(path.parent):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        handle = open(path, "a")
+    with handle:
         fcntl.flock(handle, fcntl.LOCK_EX)  # another worker extracting the same set: wait for it
         try:
             yield
@@ -95,29 +97,33 @@ def features(root: Path, key: str, make: Callable[[Path], tuple[list[str], dict,
     """The features of ``key`` under ``root``: read, or made by ``make(folder)``
     (which writes ``folder/database.db`` and returns the photo names, the
     seconds of each step and notes) and kept."""
-    try:
-        root.mkdir(parents=True, exist_ok=True)
-        entry = root / key
-        with _locked(root / f"{key}.lock"):
-            found = _read(entry)
-            if found is not None:
-                return found
-            work = root / f".{key}.{os.getpid()}.tmp"
+    entry, work = root / key, root / f".{key}.{os.getpid()}.tmp"
+    with _locked(root / f"{key}.lock"):
+        found = _read(entry)
+        if found is not None:
+            return found
+        with _cache_errors(root):
             shutil.rmtree(work, ignore_errors=True)
             work.mkdir()
-            try:
-                start = time.perf_counter()
-                names, seconds, notes = make(work)
-                seconds = {**seconds, "features_s": time.perf_counter() - start}
+        try:
+            names, seconds, notes = make(work)  # its own errors are its own: the photos', COLMAP's
+            with _cache_errors(root):
                 (work / META).write_text(json.dumps({"names": names, "seconds": seconds, "notes": notes}))
                 shutil.rmtree(entry, ignore_errors=True)  # an entry this code could not read
                 os.replace(work, entry)
-            finally:
-                shutil.rmtree(work, ignore_errors=True)
+        finally:
+            shutil.rmtree(work, ignore_errors=True)
+    return Features(entry / DATABASE, names, seconds, False, notes)
+
+
+@contextmanager
+def _cache_errors(root: Path) -> Iterator[None]:
+    """The cache folder's own failures as one line (exit 3): no space, no write access."""
+    try:
+        yield
     except OSError as exc:
         if no_space(exc):
             raise MachineError(f"photos.cache {root}: no space left for a data set's features "
                                "(give photos.cache=DIR on a larger disk)") from None
         raise MachineError(f"photos.cache {root}: cannot write the features there: "
                            f"{exc.strerror or exc}") from None
-    return Features(entry / DATABASE, names, seconds, False, notes)

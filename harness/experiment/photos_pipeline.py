@@ -182,12 +182,13 @@ def _plugin(views: list[dict], method: str, seed: int) -> Solved:
 
 def solve(views: list[dict], method: str, rng) -> Solved:
     """``method`` on the tracks of ``views``; a method that registered nothing: nothing posed."""
+    start = time.perf_counter()
     try:
         if method in methods.BUILT_IN:
             return _built_in(views, method, rng)
         return _plugin(views, method, int(rng.integers(2 ** 31)))
-    except Unregistered as exc:  # its honest outcome; any other error fails the run
-        return Solved({}, 0, float("nan"), float("nan"), str(exc), warnings=[str(exc)])
+    except Unregistered as exc:  # its honest outcome, in the time it took; any other error fails the run
+        return Solved({}, 0, float("nan"), time.perf_counter() - start, str(exc), warnings=[str(exc)])
 
 
 def _scores(data: PhotoData, views: list[dict], solved: Solved) -> dict[str, float]:
@@ -223,7 +224,8 @@ def run(config: RunConfig, streams) -> RunResult:
     # no ground-truth cloud to align a cloud to: the poses are what is scored
     scene = Scene(mesh=None, points=np.zeros((0, 3)), rotations=np.tile(np.eye(3), (len(views), 1, 1)),
                   visible=np.zeros((len(views), 0), dtype=bool))
-    notes = list(data.features.notes) + list(views[0].get("notes", []) if views else []) + solved.warnings
+    notes = [*data.features.notes, *(views[0].get("notes", []) if views else []),
+             *(data.reference.notes if data.reference else ()), *solved.warnings]
     facts = {"warnings": notes, "dataset": data.name}
     return RunResult(config=config, metrics=scores, scene=scene, reconstruction=recon,
                      aligned=np.zeros((0, 3)), facts=facts)

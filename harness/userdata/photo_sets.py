@@ -25,8 +25,6 @@ from pathlib import Path
 from mpe3d.errors import MpeError
 
 IMAGES = "images"
-MODEL_PLACES = ("sparse/0", "sparse")  # COLMAP's model folders, in the order they are looked for
-MODEL_FILES = ("images.bin", "images.txt")
 
 
 def photo_sets(root: str | Path) -> list[str]:
@@ -51,18 +49,10 @@ def set_folder(root: str | Path | None, name: str) -> Path:
 
 
 def find_reference(folder: Path) -> Path | None:
-    """The data set's reference poses: a COLMAP model (``sparse/0``, ``sparse``)
-    or one Bundler ``.out`` beside ``images/``; None when it has none. Two
-    ``.out`` files are ambiguous, and an error naming them."""
-    for place in MODEL_PLACES:
-        model = folder / place
-        if any((model / name).is_file() for name in MODEL_FILES):
-            return model
-    outs = sorted(folder.glob("*.out"))
-    if len(outs) > 1:
-        raise MpeError(f"{folder}: {len(outs)} Bundler files ({', '.join(p.name for p in outs)}); "
-                       "keep the reference's alone beside images/")
-    return outs[0] if outs else None
+    """The data set's reference poses (:func:`~.references.reference_in`), or None."""
+    from mpe3d.harness.userdata.references import reference_in
+
+    return reference_in(folder)
 
 
 def dataset_digest(folder: Path) -> str:

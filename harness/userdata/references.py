@@ -14,7 +14,7 @@ itself is :func:`mpe3d.harness.scene.metrics.score_poses`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +34,7 @@ class Reference:
     source: str  # the model folder or .out file read
     photos: int  # the photos the reference lists, posed or not
     unposed: tuple[str, ...] = ()  # listed but not posed (a Bundler camera of f = 0)
+    notes: tuple[str, ...] = ()  # what a reader of the scores should know: its photos the folder lacks
 
 
 def read_reference(path, photo_names=None) -> Reference:
@@ -50,7 +51,44 @@ def read_reference(path, photo_names=None) -> Reference:
     if not path.exists():
         raise MpeError(f"{path}: no such file or folder (a reference: a COLMAP model folder or a Bundler .out)")
     found = path if path.is_file() else _model_folder(path)
-    return _read_bundler(found, photo_names) if found.is_file() else _read_colmap(found)
+    reference = _read_bundler(found, photo_names) if found.is_file() else _read_colmap(found)
+    return reference if photo_names is None else _against_photos(reference, list(photo_names))
+
+
+def _against_photos(reference: Reference, photo_names: list[str]) -> Reference:
+    """The reference, refused when it names none of the photos (every pair
+    would score 180 degrees, whatever the method), with a note when the
+    photos lack some of its own (every method's AUC is then capped)."""
+    here = {_base(n) for n in photo_names}
+    listed = [*reference.poses, *reference.unposed]
+    missing = [n for n in listed if _base(n) not in here]
+    if len(missing) == len(listed):
+        raise MpeError(f"{reference.source}: none of its {len(listed)} photos is among the {len(photo_names)} "
+                       f"photos given (it names e.g. '{listed[0]}', the photos e.g. '{sorted(photo_names)[0]}'); "
+                       "a reference names photos by their file names")
+    if not missing:
+        return reference
+    note = (f"{len(missing)} of the reference's {len(listed)} photos are not among the photos "
+            f"({', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}): scored as unregistered by every method")
+    return replace(reference, notes=(*reference.notes, note))
+
+
+def _base(name: str) -> str:
+    return name.replace("\\", "/").rsplit("/", 1)[-1]
+
+
+def reference_in(folder: Path) -> Path | None:
+    """A data set's reference beside its ``images/``: a COLMAP model in
+    ``sparse/0`` or ``sparse``, or its one Bundler ``.out``; None when it has
+    none. Two ``.out`` files are ambiguous: one line naming them."""
+    for model in (folder / "sparse" / "0", folder / "sparse"):
+        if _has_model(model):
+            return model
+    outs = sorted(folder.glob("*.out"))
+    if len(outs) > 1:
+        raise MpeError(f"{folder}: {len(outs)} Bundler files ({', '.join(p.name for p in outs)}); "
+                       "keep the reference's alone beside images/")
+    return outs[0] if outs else None
 
 
 def _has_model(folder: Path) -> bool:
@@ -123,7 +161,7 @@ def _camera_names(path: Path, cameras: int, photo_names) -> list[str]:
 def _list_name(line: str) -> str:
     """A ``list.txt`` line's photo: its first word (Bundler writes the focal
     length after it), without any folder."""
-    return line.split()[0].replace("\\", "/").rsplit("/", 1)[-1]
+    return _base(line.split()[0])
 
 
 def poses_of(result) -> dict[str, tuple[np.ndarray, np.ndarray]]:

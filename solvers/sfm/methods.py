@@ -39,7 +39,7 @@ class SfmView:
     ids: np.ndarray  # (n,) int64 track ids of its keypoints
     xy: np.ndarray  # (n, 2) keypoints in the photo's own pixels (origin at the top-left corner)
     image_size: tuple[int, int]  # (width, height) in pixels
-    focal_px: float | None  # EXIF focal length in pixels, or None
+    focal_px: float | None  # a plausible EXIF focal length in pixels (one camera for all photos), else None
     camera: int  # which physical camera took it (photos with the same number share intrinsics)
 
 
@@ -123,7 +123,16 @@ def run_sfm(name: str, views: list[SfmView], random_state: int) -> SfmResult:
     method = get_sfm(name)
     result = method.func(list(views), random_state=int(random_state))
     _validate(method, result, views)
-    return result
+    return _as_arrays(result)
+
+
+def _as_arrays(result: SfmResult) -> SfmResult:
+    """A validated result as the arrays its fields promise (a plug-in may return lists)."""
+    poses = {photo: SfmPose(np.asarray(pose.rotation, dtype=float), np.asarray(pose.translation, dtype=float),
+                            float(pose.focal_px), tuple(float(v) for v in pose.principal_point))
+             for photo, pose in result.poses.items()}
+    return SfmResult(poses, np.asarray(result.point_ids, dtype=np.int64).reshape(-1),
+                     np.asarray(result.points, dtype=float).reshape(-1, 3), result.termination)
 
 
 def _validate(method: SfmMethod, result, views: list[SfmView]) -> None:

@@ -42,6 +42,8 @@ from typing import Iterator, MutableMapping
 
 from mpe3d.errors import MpeError
 
+# Kinds whose names share one namespace: a stress solver and an SfM method are both asked for by --solver NAME
+ONE_NAMESPACE = {"solver": ("sfm",), "sfm": ("solver",)}
 GROUPS = {"solver": "mpe3d.solvers", "dataset": "mpe3d.datasets", "sfm": "mpe3d.sfm"}  # kind -> entry-point group
 
 
@@ -108,6 +110,11 @@ def claim(kind: str, name: str, func, reserved: tuple[str, ...] = ()) -> Origin 
     if name in reserved:
         raise PluginError(f"{origin}: {kind} '{name}' is one of mpe3d's own ({', '.join(reserved)}); "
                           "rename yours")
+    for other in ONE_NAMESPACE.get(kind, ()):  # `--solver NAME` names either kind: one name, one method
+        if name in _REGISTRIES.get(other, {}):
+            holder = _OWNERS.get((other, name))
+            raise PluginError(f"{origin}: {kind} '{name}' is already a {other} of "
+                              f"{holder or 'mpe3d itself'}; rename yours")
     taken = name in _REGISTRIES.get(kind, {})
     holder = _OWNERS.get((kind, name))
     if taken and (holder is None or holder.path != origin.path):

@@ -141,7 +141,7 @@ def cmd_reconstruct(args) -> int:
     writer = bundler.solution_writer(out, problem, result) if solution else None
     write_result(out, result, report, extra, writer)
     print(_summary(result.report) + (_pose_summary(scores) if scores else ""))
-    for message in result.warnings:
+    for message in [*result.warnings, *(reference.notes if reference else ())]:
         print(f"mpe3d: warning: {message}", file=sys.stderr)
     print(f"wrote {model or out}" + (f" and {report}" if report else ""))
     return 0

@@ -158,3 +158,30 @@ def test_swept_resumed_and_reported_with_a_plug_in_on_the_axis(root, cache, tmp_
 def test_a_missing_root_in_a_sweep_is_located(tmp_path):
     with pytest.raises(MpeError, match="photos.root: .*nowhere: no such folder"):
         load_sweep(REPO / "sweeps" / "photos.yaml", "quick", overrides=[f"photos.root={tmp_path / 'nowhere'}"])
+
+
+def test_two_folders_of_the_same_data_are_one_line_not_one_set_lost(root, tmp_path):
+    shutil.copytree(root / "posed", tmp_path / "one")
+    shutil.copytree(root / "posed", tmp_path / "two")
+    with pytest.raises(MpeError, match="two and one hold the same photos and reference; keep one"):
+        load_sweep(REPO / "sweeps" / "photos.yaml", "quick", overrides=[f"photos.root={tmp_path}"])
+
+
+def test_a_plug_ins_lists_are_arrays_by_the_time_they_are_scored():
+    from mpe3d.harness.experiment.photos_pipeline import pinhole_rms
+    from mpe3d.solvers.sfm import methods
+
+    views = [methods.SfmView(n, np.arange(3), np.array([[10.0, 10.0], [20.0, 10.0], [10.0, 20.0]]), (40, 40),
+                             None, 0) for n in ("a", "b")]
+
+    @methods.register_sfm("listy_test_method")
+    def listy(given, *, random_state):
+        pose = methods.SfmPose([[1, 0, 0], [0, 1, 0], [0, 0, 1]], [0, 0, 0], 10, (10, 10))
+        return methods.SfmResult({"a": pose, "b": pose}, [0, 1, 2], [[0, 0, 1], [1, 0, 1], [0, 1, 1]])
+
+    try:
+        result = methods.run_sfm("listy_test_method", views, 0)
+        assert result.point_ids.dtype == np.int64 and result.poses["a"].rotation.shape == (3, 3)
+        assert pinhole_rms(result, views) == pytest.approx(0.0)  # each point projects onto its keypoint
+    finally:
+        methods.SFM_METHODS.pop("listy_test_method", None)

@@ -259,3 +259,14 @@ def test_every_solver_is_scored_as_colmaps_benchmark_scores_the_model_it_wrote(t
     assert scores["photos"] == TWO and scores["registered"] == len(estimated) >= 2
     if solver == "bundle":  # ours registers every photo of two cameras (1.2 degrees median, AUC@3 ~52)
         assert scores["registered"] == TWO and scores["pose_auc3"] > 30
+
+
+def test_a_reference_naming_none_of_the_photos_is_one_line_and_a_partial_one_a_note(poses, tmp_path):
+    model = write_colmap(tmp_path / "sparse" / "0", poses)
+    with pytest.raises(MpeError, match=r"none of its 4 photos is among the 2 photos given \(it names e.g. 'a.jpg', "
+                                       r"the photos e.g. 'A.JPG'\)"):
+        read_reference(model, ["A.JPG", "B.JPG"])
+    partial = read_reference(model, ["a.jpg", "b.jpg", "c.jpg", "x.jpg"])
+    assert partial.notes == ("1 of the reference's 4 photos are not among the photos (d.jpg): scored as "
+                             "unregistered by every method",)
+    assert read_reference(model, ["photos/a.jpg", *NAMES[1:]]).notes == ()  # a folder prefix is no difference
