@@ -47,12 +47,12 @@ def read_reference(path, photo_names=None) -> Reference:
     camera with no point seen in it is counted as not posed, as Bundler's
     own unregistered cameras (all zeros) are.
     """
-    path = Path(path)
+    path, photo_names = Path(path), None if photo_names is None else list(photo_names)
     if not path.exists():
         raise MpeError(f"{path}: no such file or folder (a reference: a COLMAP model folder or a Bundler .out)")
     found = path if path.is_file() else _model_folder(path)
     reference = _read_bundler(found, photo_names) if found.is_file() else _read_colmap(found)
-    return reference if photo_names is None else _against_photos(reference, list(photo_names))
+    return reference if photo_names is None else _against_photos(reference, photo_names)
 
 
 def _against_photos(reference: Reference, photo_names: list[str]) -> Reference:
