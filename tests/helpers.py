@@ -246,3 +246,17 @@ def pyproject() -> dict:
     except ModuleNotFoundError:  # Python 3.10
         import tomli as tomllib
     return tomllib.loads((REPO / "pyproject.toml").read_text())
+
+
+def assert_contract_fails(check, plugin_file, name: str, expected) -> None:
+    """Load a broken plug-in and hold ``check(name)`` (a contract check) to
+    failing in one line per failure, naming each ``expected`` part."""
+    from mpe3d import plugins
+
+    plugins.load_file(plugin_file)
+    failures = check(name)
+    assert failures, f"{name} passed"
+    text = "\n".join(failures)
+    for part in expected:
+        assert part in text, text
+    assert all("\n" not in line and line.startswith("FAIL ") for line in failures)
