@@ -130,6 +130,19 @@ def photo_data(config: RunConfig) -> PhotoData:
     return _rendered(config) if config["photos.set"] == RENDERED else _folder(config)
 
 
+def _read_tracks(data: PhotoData) -> list[dict]:
+    """The data set's tracks, read from a copy of its cached database: COLMAP
+    writes to a database it opens (its schema, its lock), and runs of the
+    other methods read the same one at the same time."""
+    import shutil
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="mpe3d-photos-") as work:
+        for part in data.features.database.parent.glob(data.features.database.name + "*"):  # -wal, -shm too
+            shutil.copy2(part, Path(work) / part.name)
+        return photos.read_database(Path(work) / data.features.database.name, "raw", source=data.source)
+
+
 def _built_in(views: list[dict], method: str, rng) -> Solved:
     from mpe3d.harness.userdata.reconstruct import prepare, solve_problem
 
@@ -215,7 +228,7 @@ def _scores(data: PhotoData, views: list[dict], solved: Solved) -> dict[str, flo
 def run(config: RunConfig, streams) -> RunResult:
     """Features (computed once per data set), the method on their tracks, its poses against the reference."""
     data = photo_data(config)
-    views = photos.read_database(data.features.database, "raw", source=data.source)
+    views = _read_tracks(data)
     solved = solve(views, config["photos.solver"], streams["solver"])
     scores = _scores(data, views, solved)
     recon = solvers.Reconstruction(points=np.zeros((0, 3)), projections=np.zeros((0, 2, 3)), stress=float("nan"),

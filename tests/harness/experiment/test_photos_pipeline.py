@@ -1,5 +1,4 @@
 """pipeline=photos: photo data sets x structure-from-motion methods, scored by pose AUC, swept and resumed."""
-import json
 import shutil
 
 import numpy as np
@@ -133,13 +132,13 @@ def test_the_sweep_makes_one_run_per_data_set_and_method(root):
 def test_swept_resumed_and_reported_with_a_plug_in_on_the_axis(root, cache, tmp_path):
     store = f"sqlite:///{tmp_path / 'mlflow.db'}"
     args = ["sweeps/photos.yaml", f"photos.root={root}", f"photos.cache={cache}", "grid.photos.set=[all]",
-            "grid.photos.solver=[bundle, colmap]", "--plugin", "examples/sfm_plugin.py",
+            "grid.photos.solver=[colmap]", "--plugin", "examples/sfm_plugin.py",
             "--solver", "pinhole_bundle"]
     env = {"MLFLOW_TRACKING_URI": store}
     first = run_cli("sweep", *args, "--scale", "quick", "--jobs", "2", cwd=REPO, env=env)
     assert first.returncode == 0, first.stderr
     again = run_cli("sweep", *args, "--scale", "quick", "--jobs", "2", cwd=REPO, env=env)
-    assert again.returncode == 0 and "nothing to run: all 6 runs are already tracked" in again.stdout
+    assert again.returncode == 0 and "nothing to run: all 4 runs are already tracked" in again.stdout
     report = run_cli("report", "--sweep", *args, "--scale", "quick", "--out", str(tmp_path / "report"),
                      cwd=REPO, env=env)
     assert report.returncode == 0, report.stderr
@@ -149,10 +148,10 @@ def test_swept_resumed_and_reported_with_a_plug_in_on_the_axis(root, cache, tmp_
     from mpe3d.reports.load import runs
 
     frame = runs(Tracker(store), "photos")
-    assert len(frame) == 2 * 3 and set(frame["status"]) == {"FINISHED"}
+    assert len(frame) == 2 * 2 and set(frame["status"]) == {"FINISHED"}
     posed = frame[frame["photos.set"] == "posed"]
     assert posed["pose_auc3"].notna().all() and frame[frame["photos.set"] == "bare"]["pose_auc3"].isna().all()
-    assert json.loads(json.dumps(sorted(frame["photos.solver"].unique()))) == ["bundle", "colmap", "pinhole_bundle"]
+    assert sorted(frame["photos.solver"].unique()) == ["colmap", "pinhole_bundle"]
 
 
 def test_a_missing_root_in_a_sweep_is_located(tmp_path):
