@@ -207,7 +207,8 @@ def dataset_finding(rows: pd.DataFrame) -> tuple[str, float | None]:
     name = rows["dataset"].iloc[0]
     order = {m: o for m, o in zip(rows["method"], rows["order"])}
     auc = done.groupby("method")[HEADLINE].median().dropna() if HEADLINE in done else pd.Series(dtype=float)
-    solve = done.groupby("method")["solve_s"].median().dropna() if "solve_s" in done else pd.Series(dtype=float)
+    posing = done[done["registered"] >= 2] if "registered" in done else done  # a method that posed nothing is not fast
+    solve = posing.groupby("method")["solve_s"].median().dropna() if "solve_s" in done else pd.Series(dtype=float)
     solve = solve[sorted(solve.index, key=order.get)]
     parts, margin = [], None
     if auc.empty:
@@ -227,7 +228,7 @@ def dataset_finding(rows: pd.DataFrame) -> tuple[str, float | None]:
     if len(solve):
         fastest = solve.idxmin()
         others = ", ".join(f"{m} {_seconds(v)}" for m, v in solve.items() if m != fastest)
-        parts.append(f"fastest: {fastest} ({_seconds(solve.min())} to solve"
+        parts.append(f"fastest of those posing photos: {fastest} ({_seconds(solve.min())} to solve"
                      + (f"; {others}" if others else "") + ")")
     return f"{name}: " + "; ".join(parts) + ".", margin
 

@@ -68,7 +68,7 @@ def test_the_findings_follow_the_numbers():
     fountain, herz, chair8, chair16, overall = lines
     assert fountain.startswith("fountain-P11: best AUC@3: COLMAP global 82.0, next COLMAP incremental by 1.5")
     assert "ours trails COLMAP global, the better COLMAP mapper, by 2.0 points (80.0 against 82.0)" in fountain
-    assert fountain.endswith("fastest: my_sfm (0.5 s to solve; ours (bundle adjustment) 2 s, "
+    assert fountain.endswith("fastest of those posing photos: my_sfm (0.5 s to solve; ours (bundle adjustment) 2 s, "
                              "COLMAP incremental 1 s, COLMAP global 3 s).")
     assert herz.startswith("herzjesu: no reference poses (registered: ours (bundle adjustment) 8,")
     assert "AUC@3 a tie within 1 point: ours (bundle adjustment) 65.0, COLMAP incremental 65.0" in chair8
@@ -172,3 +172,12 @@ def test_a_photos_sweep_is_reported_from_the_tracker(tmp_path):
     whole = tmp_path / "whole"  # the experiment by its name renders the same way
     assert main(["report", "--experiment", "photos", "--out", str(whole), "--tracking-uri", uri]) == 0
     assert (whole / "tables" / "photos_photos.md").read_text() == table
+
+
+def test_a_method_that_posed_nothing_is_not_the_fastest():
+    frame = photo_runs()
+    nothing = (frame["photos.set"] == "fountain-P11") & (frame["photos.solver"] == "my_sfm")
+    frame.loc[nothing, "registered"] = 0
+    fountain = photos.findings(frame)[0]
+    assert "fastest of those posing photos: COLMAP incremental (1 s to solve" in fountain
+    assert "my_sfm 0.5" not in fountain
