@@ -14,7 +14,7 @@ each model against the reference poses, COLMAP's own benchmark's
 relative-pose metric (:func:`mpe3d.harness.scene.metrics.pose_auc`).
 
 Rendered sets: the bundled ``--shape`` along the parity benchmark's spiral
-(``colmap_parity.spiral``: 400-px photos 15-18 degrees apart), ``--sizes``
+(``rendering.photo_spiral``: 400-px photos 15-18 degrees apart), ``--sizes``
 photos, exact reference poses; kept under ``--work`` between runs.
 ``--real DIR``: a folder holding ``images/`` and its reference, a COLMAP
 model (``sparse/0`` or ``sparse``), a Bundler ``.out`` (its ``list.txt``
@@ -39,7 +39,6 @@ from machine import describe
 from mpe3d.harness.scene.metrics import POSE_AUC_THRESHOLDS, pose_auc, relative_pose_errors
 
 HERE = Path(__file__).resolve().parent
-FLIP = np.diag([1.0, -1.0, -1.0])  # Bundler's camera frame to COLMAP's
 
 
 def rendered(shape: str, count: int, seed: int, work: Path, k1: float = 0.0,
@@ -47,12 +46,10 @@ def rendered(shape: str, count: int, seed: int, work: Path, k1: float = 0.0,
     """The rendered set's images folder and its exact poses, made once:
     through a lens of radial distortion ``k1`` (COLMAP's RADIAL camera), the
     bounding sphere filling ``fill`` of the width (None: the spiral's 0.85)."""
-    from colmap_parity import spiral
-
     from mpe3d.harness.scene import rendering, shapes
 
     folder = work / (f"{shape}-{count}-s{seed}" + (f"-k{k1:g}" if k1 else "") + (f"-fill{fill:g}" if fill else ""))
-    cams = spiral(count, 400, seed, fill=fill or 0.85)
+    cams = rendering.photo_spiral(count, 400, seed, fill=fill or 0.85)
     cams = rendering.PhotoCameras(cams.rotations, cams.translations, cams.focal, cams.width, cams.height, (k1, 0.0))
     names = [f"image_{k:04d}.png" for k in range(count)]
     if not (folder / "done").exists():
@@ -62,13 +59,15 @@ def rendered(shape: str, count: int, seed: int, work: Path, k1: float = 0.0,
 
 
 def reference(folder: Path) -> dict:
-    """``{photo name: (R, t)}`` of a real set's reference (see the module doc)."""
-    for model in (folder / "sparse" / "0", folder / "sparse"):
-        if (model / "images.bin").exists() or (model / "images.txt").exists():
-            return model_poses(model)
-    outs = sorted(folder.glob("*.out")) + sorted(folder.glob("*/*.out"))
-    if outs:
-        return _bundler(outs[0], folder)
+    """``{photo name: (R, t)}`` of a real set's reference (see the module doc):
+    a COLMAP model or Bundler file as ``mpe3d`` reads one, else Strecha's
+    ``*.camera`` files."""
+    from mpe3d.harness.userdata.photo_folder import list_photos
+    from mpe3d.harness.userdata.references import read_reference, reference_in
+
+    found = reference_in(folder)
+    if found is not None:
+        return read_reference(found, list_photos(folder / "images")).poses
     cameras = sorted(folder.glob("**/*.camera"))
     if cameras:
         return {p.name[:-len(".camera")]: _strecha(p) for p in cameras}
@@ -80,21 +79,6 @@ def _strecha(path: Path):
     rows = [list(map(float, line.split())) for line in path.read_text().splitlines() if line.strip()]
     R, C = np.array(rows[4:7]), np.array(rows[7])
     return R.T, -R.T @ C
-
-
-def _bundler(path: Path, folder: Path) -> dict:
-    lines = [line for line in path.read_text().splitlines() if not line.startswith("#")]
-    n_cameras = int(lines[0].split()[0])
-    listed = path.parent / "list.txt"
-    names = [line.split()[0].split("/")[-1] for line in listed.read_text().splitlines() if line.strip()] \
-        if listed.exists() else sorted(p.name for p in (folder / "images").iterdir())
-    poses = {}
-    for k in range(n_cameras):
-        block = np.array([list(map(float, lines[1 + 5 * k + i].split())) for i in range(5)])
-        if not np.any(block):  # Bundler did not register it: no reference pose
-            continue
-        poses[names[k]] = (FLIP @ block[1:4], FLIP @ block[4])
-    return poses
 
 
 def model_poses(model: Path) -> dict:

@@ -74,7 +74,7 @@ def test_the_worked_example_recovers_the_true_poses():
     assert isinstance(result, mpe3d.SfmResult) and get_sfm("pinhole_bundle").origin.how == "file"
     from mpe3d.harness.scene.metrics import relative_pose_errors
 
-    errors = relative_pose_errors({n: (p.rotation, p.translation) for n, p in result.poses.items()}, truth)
+    errors = relative_pose_errors(truth, {n: (p.rotation, p.translation) for n, p in result.poses.items()})
     assert errors.max() < 1e-3  # noise-free pixels: the poses up to the solver's tolerance
     focal = [pose.focal_px for pose in result.poses.values()]
     assert np.allclose(focal, 500.0, rtol=1e-6) and result.poses["photo_00.jpg"].principal_point == (320, 240)

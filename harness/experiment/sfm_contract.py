@@ -49,11 +49,15 @@ def run_sfm_checks(name: str, random_state: int = 0) -> list[Check]:
 
 def _in_case(name: str, case: str, exif: bool, seed: int) -> list[Check]:
     views, truth = synthetic_views(seed, exif)
-    checks = _attempt(f"result ({case})", _result, name, views, seed, case)
-    if not checks[-1].passed:  # the checks below would only repeat it
+    first = _run(name, views, seed, f"result ({case})", global_seed=1)
+    if isinstance(first, Check):  # it raised: the checks below would only repeat it
+        return [first]
+    checks = [_result(first, case)]
+    if not checks[-1].passed:
         return checks
-    checks += _attempt(f"seed ({case})", _determinism, name, views, seed, case)
-    checks += _attempt(f"poses ({case})", _poses, name, views, truth, seed, case)
+    again = _run(name, views, seed, f"seed ({case})", global_seed=2)  # numpy's global state drawn otherwise
+    checks.append(again if isinstance(again, Check) else _determinism(first, again, seed, case))
+    checks.append(_poses(first, views, truth, case))
     return checks
 
 
@@ -94,28 +98,25 @@ def _look_at(angle: float, distance: float, height: float) -> tuple[np.ndarray, 
     return R, -R @ position
 
 
-def _attempt(name: str, check, *args) -> list[Check]:
-    """``check(*args)``, or a failed check when the method raised (any error of its own is a failure)."""
+def _run(name: str, views: list[SfmView], seed: int, check: str, global_seed: int) -> SfmResult | Check:
+    """The method's result, numpy's global state seeded with ``global_seed``
+    first, or a failed ``check`` when it raised (any error of its own is a failure)."""
+    np.random.seed(global_seed)
     try:
-        return [check(*args)]
+        return run_sfm(name, views, seed)  # types, shapes, finiteness, names and ids: checked there
     except MpeError as exc:
-        return [Check(name, False, str(exc))]
+        return Check(check, False, str(exc))
     except Exception as exc:  # noqa: BLE001 - reported in one line, as the stress contract does
-        return [Check(name, False, f"raised {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")]
+        return Check(check, False, f"raised {type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}")
 
 
-def _result(name: str, views: list[SfmView], seed: int, case: str) -> Check:
-    result = run_sfm(name, views, seed)  # types, shapes, finiteness, names and ids: checked there
+def _result(result: SfmResult, case: str) -> Check:
     if not result.poses:
         return Check(f"result ({case})", False, "registered no photo of a noise-free scene")
     return Check(f"result ({case})", True)
 
 
-def _determinism(name: str, views: list[SfmView], seed: int, case: str) -> Check:
-    np.random.seed(1)
-    first = run_sfm(name, views, seed)
-    np.random.seed(2)  # a method drawing from numpy's global state now draws otherwise
-    again = run_sfm(name, views, seed)
+def _determinism(first: SfmResult, again: SfmResult, seed: int, case: str) -> Check:
     gap = _gap(first, again)
     if gap is not None:
         return Check(f"seed ({case})", False, f"two runs with random_state={seed} differ ({gap}): "
@@ -140,14 +141,13 @@ def _gap(a: SfmResult, b: SfmResult) -> str | None:
     return None if worst <= SAME_RUN else f"by up to {worst:.2g} of the scene's extent"
 
 
-def _poses(name: str, views: list[SfmView], truth: dict, seed: int, case: str) -> Check:
-    result = run_sfm(name, views, seed)
+def _poses(result: SfmResult, views: list[SfmView], truth: dict, case: str) -> Check:
     estimated = {photo: (pose.rotation, pose.translation) for photo, pose in result.poses.items()}
     registered = {photo: truth[photo] for photo in estimated}
     if len(registered) < 2:
         return Check(f"poses ({case})", False, f"registered {len(registered)} of {len(views)} photos of a "
                      "noise-free scene: no pair to score")
-    errors = relative_pose_errors(estimated, registered)
+    errors = relative_pose_errors(registered, estimated)
     worst = float(errors.max())
     if worst > POSE_BOUND:
         return Check(f"poses ({case})", False, f"a pair of registered photos is {worst:.3g}° off the true "
