@@ -15,24 +15,19 @@ from dataclasses import replace
 from typing import Iterable, Sequence
 
 from mpe3d.errors import MpeError
-from mpe3d.harness.experiment.config import EVERY_SET, RunConfig
+from mpe3d.harness.experiment.config import EVERY_SET, RENDERED, RunConfig
 
 
 def every_photo_set(runs: list[RunConfig], where: str) -> list[RunConfig]:
     """Each photos run of ``photos.set=all`` as one run per data set under
     ``photos.root`` (none when it is not given: the sweep's rendered sets alone);
     ``where`` says where photos.root was set, for an error."""
-    from mpe3d.harness.userdata.photo_sets import photo_sets
-
     out = []
     for config in runs:
         if config["pipeline"] != "photos" or config["photos.set"] != EVERY_SET:
             out.append(config)
         elif config["photos.root"] is not None:
-            try:
-                names = photo_sets(config["photos.root"])
-            except MpeError as exc:
-                raise exc.located(where) from None
+            names = _photo_sets(config["photos.root"], where)
             found = {}
             for name in names:
                 run = config.replace(**{"photos.set": name})
@@ -42,6 +37,28 @@ def every_photo_set(runs: list[RunConfig], where: str) -> list[RunConfig]:
                                    f"keep one (at {where})", key="photos.root")
                 out.append(run)
     return out
+
+
+def _photo_sets(root: str, where: str) -> list[str]:
+    """The data sets under ``root``: one line for none, or for a name a data set cannot have."""
+    from pathlib import Path
+
+    from mpe3d.harness.userdata.photo_sets import IMAGES, photo_sets
+
+    try:
+        names = photo_sets(root)
+    except MpeError as exc:
+        raise exc.located(where) from None
+    if not names:
+        hint = "it is a data set itself: give its parent" if (Path(root).expanduser() / IMAGES).is_dir() \
+            else f"each data set is a subfolder holding {IMAGES}/"
+        raise MpeError(f"photos.root: {root} holds no data set ({hint}) at {where}", key="photos.root")
+    for name in names:
+        if name in (RENDERED, EVERY_SET):
+            raise MpeError(f"photos.root: {Path(root) / name}: a data set may not be named '{name}' (photos.set "
+                           f"says {RENDERED} and {EVERY_SET} for the rendered sets and every data set); rename "
+                           f"it at {where}", key="photos.root")
+    return names
 
 
 def add_solvers(sweep, names: Sequence[str]):

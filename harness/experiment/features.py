@@ -27,6 +27,7 @@ import hashlib
 import json
 import os
 import shutil
+import time
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -35,10 +36,12 @@ from typing import Callable, Iterator
 from mpe3d.errors import MachineError
 from mpe3d.harness.files import cache_folder, no_space
 
-# The modules that make a data set's photos and database: a change to any makes them again.
+# The modules that make a data set's photos and database (this one holds how they are
+# asked for): a change to any makes them again.
 FEATURE_CODE = ("mpe3d.harness.scene.shapes", "mpe3d.harness.scene.rendering", "mpe3d.harness.userdata.photo_folder",
                 "mpe3d.solvers.sfm.colmap", "mpe3d.harness.experiment.features")
 MAX_FEATURES = 8192  # SIFT features a photo, COLMAP's default and mpe3d reconstruct's
+FOLDER_SEED = 0  # a folder's features do not depend on a run's seed: every seed shares them
 DATABASE = "database.db"
 META = "features.json"
 
@@ -52,6 +55,46 @@ class Features:
     seconds: dict[str, float]  # extract_s, match_s (render_s for a rendered set), when computed
     cached: bool  # read from the cache: this run did not compute them
     notes: list[str] = field(default_factory=list)  # photos skipped, and why
+
+
+def _extract(image_dir: Path, names: list[str], matching: str, seed: int, database: Path) -> dict:
+    from mpe3d.solvers.sfm import colmap
+
+    return colmap.extract_and_match(database, image_dir, names, matching=matching, threads=1,
+                                    max_features=MAX_FEATURES, verify=False, seed=seed)
+
+
+def rendered_set(shape: str, count: int, size: int, seed: int, matching: str, root: Path):
+    """A rendered photo set's features (the photos rendered with them, under
+    the entry) and its cameras, whose poses are the set's reference."""
+    from mpe3d.harness.experiment.datasets import shape_data
+    from mpe3d.harness.scene import rendering, shapes
+
+    cameras = rendering.photo_spiral(count, size, seed)
+
+    def make(work: Path):
+        start = time.perf_counter()
+        names = rendering.save_images(rendering.render(shapes.load_shape(shape), cameras, seed=seed), work / "images")
+        render_s = time.perf_counter() - start
+        return names, {"render_s": render_s, **_extract(work / "images", names, matching, seed, work / DATABASE)}, []
+
+    what = {"rendered": shape_data(shape), "count": count, "size": size, "seed": seed, "max_features": MAX_FEATURES,
+            "matching": matching}
+    return features(root, feature_key(what), make), cameras
+
+
+def folder_set(images: Path, matching: str, root: Path) -> Features:
+    """A folder of photos' features: every run's, whatever its seed (they do not depend on it)."""
+    from mpe3d.harness.userdata.formats import content_digest
+    from mpe3d.harness.userdata.photo_folder import usable_photos
+
+    def make(work: Path):
+        found = usable_photos(images, work)
+        return found.names, _extract(found.image_dir, found.names, matching, FOLDER_SEED, work / DATABASE), \
+            found.skipped
+
+    what = {"photos": content_digest(images), "max_features": MAX_FEATURES, "matching": matching}
+    return features(root, feature_key(what), make)
 
 
 def cache_root(folder: str | None) -> Path:

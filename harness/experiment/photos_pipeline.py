@@ -43,7 +43,6 @@ from mpe3d.harness.userdata.references import Reference, poses_of, read_referenc
 from mpe3d.solvers.sfm import methods
 
 POSE_KEYS = ("pose_auc1", "pose_auc3", "pose_auc5", "pose_auc10")
-FOLDER_SEED = 0  # a folder's features do not depend on a run's seed: every seed shares them
 
 
 @dataclass
@@ -69,56 +68,24 @@ class Solved:
     warnings: list[str] = field(default_factory=list)
 
 
-def _extract(image_dir: Path, names: list[str], config: RunConfig, seed: int, database: Path) -> dict:
-    from mpe3d.solvers.sfm import colmap
-
-    return colmap.extract_and_match(database, image_dir, names, matching=config["images.matching"], threads=1,
-                                    max_features=feature_cache.MAX_FEATURES, verify=False, seed=seed)
-
-
 def _rendered(config: RunConfig) -> PhotoData:
-    from mpe3d.harness.experiment.datasets import shape_data
-    from mpe3d.harness.scene import rendering, shapes
-
-    count, size, seed = config["images.count"], config["images.size"], config["seed"]
-    cameras = rendering.photo_spiral(count, size, seed)
-
-    def make(work: Path):
-        start = time.perf_counter()
-        names = rendering.save_images(rendering.render(shapes.load_shape(config["shape"]), cameras, seed=seed),
-                                      work / "images")
-        render_s = time.perf_counter() - start
-        return names, {"render_s": render_s, **_extract(work / "images", names, config, seed,
-                                                         work / feature_cache.DATABASE)}, []
-
-    what = {"rendered": shape_data(config["shape"]), "count": count, "size": size, "seed": seed,
-            "max_features": feature_cache.MAX_FEATURES, "matching": config["images.matching"]}
-    found = feature_cache.features(feature_cache.cache_root(config["photos.cache"]),
-                                   feature_cache.feature_key(what), make)
+    found, cameras = feature_cache.rendered_set(config["shape"], config["images.count"], config["images.size"],
+                                                config["seed"], config["images.matching"],
+                                                feature_cache.cache_root(config["photos.cache"]))
     poses = {name: (R, t) for name, R, t in zip(found.names, cameras.rotations, cameras.translations)}
-    label = f"{config['shape']}, {count} photos"
-    return PhotoData(label, found, Reference(poses=poses, source="rendered", photos=count), label)
+    label = data_label(config)
+    return PhotoData(label, found, Reference(poses=poses, source="rendered", photos=len(poses)), label)
 
 
 def _folder(config: RunConfig) -> PhotoData:
-    from mpe3d.harness.userdata.formats import content_digest
-    from mpe3d.harness.userdata.photo_folder import list_photos, usable_photos
+    from mpe3d.harness.userdata.photo_folder import list_photos
     from mpe3d.harness.userdata.photo_sets import IMAGES, find_reference
 
-    folder = photo_set_folder(config.values)
-    images = folder / IMAGES
-    reference_path = find_reference(folder)  # read before the features: a bad reference fails at once
-
-    def make(work: Path):
-        found = usable_photos(images, work)
-        seconds = _extract(found.image_dir, found.names, config, FOLDER_SEED, work / feature_cache.DATABASE)
-        return found.names, seconds, found.skipped
-
-    what = {"photos": content_digest(images), "max_features": feature_cache.MAX_FEATURES,
-            "matching": config["images.matching"]}
+    images = photo_set_folder(config.values) / IMAGES
+    reference_path = find_reference(images.parent)  # read before the features: a bad reference fails at once
     reference = None if reference_path is None else read_reference(reference_path, list_photos(images))
-    found = feature_cache.features(feature_cache.cache_root(config["photos.cache"]),
-                                   feature_cache.feature_key(what), make)
+    cache = feature_cache.cache_root(config["photos.cache"])
+    found = feature_cache.folder_set(images, config["images.matching"], cache)
     return PhotoData(config["photos.set"], found, reference, images)
 
 

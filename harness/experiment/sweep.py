@@ -401,7 +401,7 @@ def load_sweep(path: str | Path, scale: str = FULL, max_runs: int | None = None,
     axes = _grid_axes(data.get("grid"), src) + _zip_axes(data.get("zip"), src)
     _check_axes_disjoint(base, axes, bool(seeds), src)
     _check_shapes(base, axes, src)
-    runs = every_photo_set(_expand(base, axes + ([seeds] if seeds else []), src), src.where("photos.root"))
+    runs = every_photo_set(_expand(base, axes + ([seeds] if seeds else []), src), src.where("base.photos.root"))
     unique: dict[str, RunConfig] = {}
     for config in runs:  # the first of identical grid points wins
         unique.setdefault(config.hash(), config)

@@ -59,6 +59,8 @@ def _against_photos(reference: Reference, photo_names: list[str]) -> Reference:
     """The reference, refused when it names none of the photos (every pair
     would score 180 degrees, whatever the method), with a note when the
     photos lack some of its own (every method's AUC is then capped)."""
+    if not photo_names:  # no photo to name: reading them says why, in a line of its own
+        return reference
     here = {_base(n) for n in photo_names}
     listed = [*reference.poses, *reference.unposed]
     missing = [n for n in listed if _base(n) not in here]
@@ -66,11 +68,18 @@ def _against_photos(reference: Reference, photo_names: list[str]) -> Reference:
         raise MpeError(f"{reference.source}: none of its {len(listed)} photos is among the {len(photo_names)} "
                        f"photos given (it names e.g. '{listed[0]}', the photos e.g. '{sorted(photo_names)[0]}'); "
                        "a reference names photos by their file names")
-    if not missing:
-        return reference
-    note = (f"{len(missing)} of the reference's {len(listed)} photos are not among the photos "
-            f"({', '.join(missing[:5])}{', ...' if len(missing) > 5 else ''}): scored as unregistered by every method")
-    return replace(reference, notes=(*reference.notes, note))
+    posed = {_base(n) for n in reference.poses}
+    unposed = [n for n in photo_names if _base(n) not in posed]
+    notes = [f"{len(missing)} of the reference's {len(listed)} photos are not among the photos "
+             f"({_some(missing)}): scored as unregistered by every method"] if missing else []
+    if unposed:  # COLMAP's benchmark: a registered photo the reference does not pose is a registered outlier
+        notes.append(f"{len(unposed)} of the {len(photo_names)} photos have no reference pose ({_some(unposed)}): "
+                     "a method that registers one scores 180 degrees for each of its pairs")
+    return replace(reference, notes=(*reference.notes, *notes))
+
+
+def _some(names: list[str]) -> str:
+    return ", ".join(names[:5]) + (", ..." if len(names) > 5 else "")
 
 
 def _base(name: str) -> str:

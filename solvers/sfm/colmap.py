@@ -476,10 +476,21 @@ def global_mapping(database: Path, image_dir: Path, out: Path, *, threads: int =
 
 
 def read_model(folder: Path) -> Model:
-    """A model folder (``cameras``, ``images``, ``points3D``, binary or text)."""
+    """A model folder (``cameras``, ``images``, ``points3D``, binary or text);
+    one of poses alone (no ``points3D``, as a hand-made reference often is)
+    is read as one without points, which COLMAP's reader refuses."""
     pycolmap = _pycolmap()
+    folder = Path(folder)
     with _asked("read the model", folder):
-        return _model(pycolmap.Reconstruction(folder))
+        if any((folder / f"points3D{ext}").is_file() for ext in (".bin", ".txt")):
+            return _model(pycolmap.Reconstruction(folder))
+        with tempfile.TemporaryDirectory(prefix="mpe3d-model-") as copy:
+            for part in folder.iterdir():
+                if part.is_file():
+                    shutil.copy2(part, Path(copy) / part.name)
+            binary = (folder / "images.bin").is_file()
+            (Path(copy) / ("points3D.bin" if binary else "points3D.txt")).write_bytes(b"\0" * 8 if binary else b"")
+            return _model(pycolmap.Reconstruction(copy))
 
 
 @dataclass

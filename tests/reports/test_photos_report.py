@@ -181,3 +181,13 @@ def test_a_method_that_posed_nothing_is_not_the_fastest():
     fountain = photos.findings(frame)[0]
     assert "fastest of those posing photos: COLMAP incremental (1 s to solve" in fountain
     assert "my_sfm 0.5" not in fountain
+
+
+def test_a_failed_run_of_ours_is_a_miss_and_said():
+    frame = photo_runs()
+    ours = (frame["photos.set"] == "fountain-P11") & (frame["photos.solver"] == "bundle")
+    frame.loc[ours, "status"] = "FAILED"
+    verdict = photos.ours_within(frame)
+    assert verdict.verdict == photos.FAILS and "fountain-P11 (ours failed)" in verdict.numbers, verdict
+    fountain = photos.findings(frame)[0]
+    assert fountain.startswith("fountain-P11: failed: ours (bundle adjustment) 1 of 1 runs;"), fountain

@@ -1,4 +1,5 @@
 """pipeline=photos: photo data sets x structure-from-motion methods, scored by pose AUC, swept and resumed."""
+import re
 import shutil
 
 import numpy as np
@@ -184,3 +185,18 @@ def test_a_plug_ins_lists_are_arrays_by_the_time_they_are_scored():
         assert pinhole_rms(result, views) == pytest.approx(0.0)  # each point projects onto its keypoint
     finally:
         methods.SFM_METHODS.pop("listy_test_method", None)
+
+
+@pytest.mark.parametrize("layout, message", [
+    ("one set", "holds no data set (it is a data set itself: give its parent)"),
+    ("empty", "holds no data set (each data set is a subfolder holding images/)"),
+    ("rendered", "a data set may not be named 'rendered'"),
+])
+def test_a_root_that_gives_no_data_set_is_one_line(root, tmp_path, layout, message):
+    where = {"one set": tmp_path / "posed", "empty": tmp_path, "rendered": tmp_path}[layout]
+    if layout == "one set":
+        shutil.copytree(root / "posed", where)
+    if layout == "rendered":
+        shutil.copytree(root / "posed", tmp_path / "rendered")
+    with pytest.raises(MpeError, match=f"photos.root: .*{re.escape(message)}.* at the command line"):
+        load_sweep(REPO / "sweeps" / "photos.yaml", "quick", overrides=[f"photos.root={where}"])

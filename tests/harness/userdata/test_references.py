@@ -268,5 +268,34 @@ def test_a_reference_naming_none_of_the_photos_is_one_line_and_a_partial_one_a_n
         read_reference(model, ["A.JPG", "B.JPG"])
     partial = read_reference(model, ["a.jpg", "b.jpg", "c.jpg", "x.jpg"])
     assert partial.notes == ("1 of the reference's 4 photos are not among the photos (d.jpg): scored as "
-                             "unregistered by every method",)
+                             "unregistered by every method",
+                             "1 of the 4 photos have no reference pose (x.jpg): a method that registers one "
+                             "scores 180 degrees for each of its pairs")
     assert read_reference(model, ["photos/a.jpg", *NAMES[1:]]).notes == ()  # a folder prefix is no difference
+
+
+def test_photos_only_in_subfolders_are_one_line_with_a_reference(rendered, tmp_path, capsys):
+    """An ETH3D-like layout (images/dslr/*.jpg): the reference reads, the photo folder says why, exit 2."""
+    folder, _ = rendered
+    nested = tmp_path / "images" / "dslr"
+    nested.mkdir(parents=True)
+    for photo in (folder / "images").iterdir():
+        (nested / photo.name).write_bytes(photo.read_bytes())
+    assert read_reference(folder, []).notes == ()
+    assert main(["reconstruct", str(tmp_path / "images"), "--reference", str(folder), "--out",
+                 str(tmp_path / "c.ply")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize("text", [False, True])
+def test_a_model_of_poses_alone_without_points3d_is_a_reference(poses, tmp_path, text):
+    model = write_colmap(tmp_path / "binary", poses)
+    if text:
+        (tmp_path / "text").mkdir()
+        pycolmap.Reconstruction(str(model)).write_text(str(tmp_path / "text"))
+        model = tmp_path / "text"
+    for part in model.glob("points3D.*"):
+        part.unlink()
+    reference = read_reference(model, NAMES)
+    assert sorted(reference.poses) == NAMES and all(np.allclose(reference.poses[n][0], poses[n][0]) for n in NAMES)
