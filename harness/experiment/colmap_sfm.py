@@ -64,7 +64,7 @@ def run_sfm(image_dir: Path, names: list[str], workdir: Path, *, focal: float,
                                                      colmap.matched_pairs(len(names), matching), True), given=False)
     seconds = colmap.extract_and_match(database, image_dir, names, camera=camera, matching=matching,
                                        threads=1, max_features=max_features, seed=seed)
-    model = colmap.incremental_mapping(database, image_dir, workdir / "sparse", threads=1, seed=seed)
+    model = colmap.incremental_mapping(database, image_dir, workdir / "sparse", seed=seed)
     if model is None:  # the mapper made no model at all
         return SfmResult(database, names, np.zeros((0, 3)), np.zeros(0, dtype=np.int64), {}, 0, None, None,
                          {}, seconds)

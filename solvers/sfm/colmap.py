@@ -10,10 +10,13 @@ written); COLMAP's own log is silenced.
 
 Repeatability: every random choice of COLMAP that pycolmap exposes takes
 the caller's ``seed`` (RANSAC in verification and estimators, either
-mapper's ``random_seed``, pycolmap's global seed). With one thread a run
-repeats bit for bit; with more, SIFT extraction and matching still do, but
-the mappers' bundle adjustment (Ceres) sums in thread order, so their poses
-may differ in the last digits from run to run (docs/methods/colmap.md).
+mapper's ``random_seed``, pycolmap's global seed). Extraction, matching and
+verification repeat bit for bit on any thread count, once the photos are
+numbered in name order (:func:`_in_name_order`). The mappers do not:
+their solves (Ceres) sum in thread order, and a mapper's choices amplify the
+last digits, so on two threads one seed gave 9, 10 or 12 of 12 views
+registered from run to run. The mappers therefore always run on one thread,
+at about a fifth more mapping time (docs/methods/colmap.md).
 
 One module for all of it, past 500 lines (tests/test_architecture.py says
 why): one place calls pycolmap, and a test holds every other module to that;
@@ -345,6 +348,8 @@ def extract_and_match(database: Path, image_dir: Path, names: list[str], *, came
         pycolmap.extract_features(database, image_dir, image_names=names, camera_mode=mode,
                                   reader_options=reader, extraction_options=extraction,
                                   device=pycolmap.Device.cpu)
+    with _asked("number the photos in name order", database):
+        _in_name_order(database)
     seconds["extract_s"] = time.perf_counter() - start
     start = time.perf_counter()
     options = pycolmap.FeatureMatchingOptions()
@@ -364,6 +369,53 @@ def extract_and_match(database: Path, image_dir: Path, names: list[str], *, came
                                       verification_options=geometry, device=pycolmap.Device.cpu)
     seconds["match_s"] = time.perf_counter() - start
     return seconds
+
+
+def _in_name_order(database: Path) -> None:
+    """Number the cameras, rigs, frames and images of a freshly extracted
+    ``database`` in the photos' name order. The extractor's threads write each
+    photo when they finish it, so its numbers vary from run to run; and they
+    order every pair of a match (a < b), which RANSAC samples by, and the
+    views. Renumbered, verification and the views repeat on any thread count.
+    A database of rigs (a frame of several images) is left as written."""
+    pycolmap = _pycolmap()
+    with pycolmap.Database.open(str(database)) as db:
+        images = sorted(db.read_all_images(), key=lambda im: im.name)
+        frames = {f.frame_id: f for f in db.read_all_frames()}
+        cameras = {c.camera_id: c for c in db.read_all_cameras()}
+        first_use = list(dict.fromkeys(im.camera_id for im in images))
+        in_order = [im.image_id for im in images] == list(range(1, len(images) + 1)) \
+            and first_use == list(range(1, len(cameras) + 1))
+        if in_order or any(f.num_data_ids() != 1 for f in frames.values()) or len(first_use) != len(cameras):
+            return
+        features = [(db.read_keypoints(im.image_id), db.read_descriptors(im.image_id)) for im in images]
+        priors = {p.corr_data_id.id: p for p in db.read_all_pose_priors()}
+        db.clear_all_tables()
+        sensors = {}  # SQLite keeps counting after a clear: every number is written, from 1
+        for number, old_id in enumerate(first_use, 1):
+            camera, rig = cameras[old_id], pycolmap.Rig()
+            camera.camera_id = rig.rig_id = number
+            db.write_camera(camera, use_camera_id=True)
+            rig.add_ref_sensor(camera.sensor_id)
+            sensors[old_id] = (camera, db.write_rig(rig, use_rig_id=True))
+        for image_id, (image, (keypoints, descriptors)) in enumerate(zip(images, features), 1):
+            camera, rig_id = sensors[image.camera_id]
+            frame = pycolmap.Frame()
+            frame.frame_id, frame.rig_id = image_id, rig_id
+            frame.add_data_id(pycolmap.data_t(camera.sensor_id, image_id))
+            written = pycolmap.Image(name=image.name, camera_id=camera.camera_id)
+            written.image_id = image_id
+            db.write_image(written, use_image_id=True)
+            db.write_frame(frame, use_frame_id=True)
+            written = db.read_image(image_id)
+            written.frame_id = image_id
+            db.update_image(written)
+            db.write_keypoints(image_id, keypoints)
+            db.write_descriptors(image_id, descriptors)
+            prior = priors.get(image.image_id)
+            if prior is not None:
+                prior.corr_data_id = pycolmap.data_t(camera.sensor_id, image_id)
+                db.write_pose_prior(prior)
 
 
 def verify_matches(database: Path, *, threads: int = 1, seed: int = 0) -> None:
@@ -428,13 +480,14 @@ def _model(reconstruction, models: int = 1, seconds=None) -> Model:
     return Model(cameras, images, ids, points, models, error, dict(seconds or {}))
 
 
-def _largest(mapper, options, database: Path, image_dir: Path, out: Path, threads: int, seed: int) -> Model | None:
+def _largest(mapper, options, database: Path, image_dir: Path, out: Path, seed: int) -> Model | None:
     """``mapper`` (a pycolmap mapping call) on ``database`` with ``options``,
-    seeded and threaded; its largest model (most registered images, then most
-    points), or None when it made none. ``seconds`` holds the mapping's time."""
+    seeded, on one thread (a seed must repeat a run: module docstring); its
+    largest model (most registered images, then most points), or None when it
+    made none. ``seconds`` holds the mapping's time."""
     pycolmap = _pycolmap()
     pycolmap.set_random_seed(_seed(seed))
-    options.num_threads = threads
+    options.num_threads = 1
     options.random_seed = _seed(seed)
     start = time.perf_counter()
     with _asked("map the photos", database):
@@ -445,8 +498,7 @@ def _largest(mapper, options, database: Path, image_dir: Path, out: Path, thread
     return None if best is None else _model(best, len(models), seconds)
 
 
-def incremental_mapping(database: Path, image_dir: Path, out: Path, *, threads: int = 1,
-                        seed: int = 0) -> Model | None:
+def incremental_mapping(database: Path, image_dir: Path, out: Path, *, seed: int = 0) -> Model | None:
     """COLMAP's incremental mapper on ``database`` (its models written under
     ``out``); its largest model, or None when it made none (a model of fewer
     than :data:`MIN_REGISTERED` images is none to a caller that needs one).
@@ -454,15 +506,14 @@ def incremental_mapping(database: Path, image_dir: Path, out: Path, *, threads: 
     pycolmap = _pycolmap()
     options = pycolmap.IncrementalPipelineOptions()
     options.extract_colors = False  # no photo is read again: a point's colour is no use to a score
-    return _largest(pycolmap.incremental_mapping, options, database, image_dir, out, threads, seed)
+    return _largest(pycolmap.incremental_mapping, options, database, image_dir, out, seed)
 
 
-def global_mapping(database: Path, image_dir: Path, out: Path, *, threads: int = 1,
-                   seed: int = 0) -> Model | None:
+def global_mapping(database: Path, image_dir: Path, out: Path, *, seed: int = 0) -> Model | None:
     """COLMAP's global mapper (GLOMAP's: rotation averaging, then global
     positioning of cameras and points together, then bundle adjustment) on
     the verified matches of ``database``, as :func:`incremental_mapping`.
-    Its pipeline hands ``threads`` and ``seed`` on to every stage (rotation
+    Its pipeline hands the one thread and ``seed`` on to every stage (rotation
     averaging, positioning, bundle adjustment, re-triangulation). It keeps
     models of :data:`MIN_REGISTERED` images or more, as the incremental one
     can, not only of its default three. ``image_dir`` is not read: the
@@ -472,7 +523,7 @@ def global_mapping(database: Path, image_dir: Path, out: Path, *, threads: int =
     options = pycolmap.GlobalPipelineOptions()
     options.min_model_size = MIN_REGISTERED
     Path(out).mkdir(parents=True, exist_ok=True)
-    return _largest(pycolmap.global_mapping, options, database, out, out, threads, seed)
+    return _largest(pycolmap.global_mapping, options, database, out, out, seed)
 
 
 def read_model(folder: Path) -> Model:

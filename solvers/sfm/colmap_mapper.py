@@ -138,8 +138,8 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
     seed : int, default 0
         RANSAC's and the mapper's random seed.
     threads : int, default 1
-        COLMAP's thread count for verification and mapping (one repeats a
-        run bit for bit: :mod:`.colmap`).
+        COLMAP's thread count for verification; its mappers run on one, so
+        that a seed repeats a run (:mod:`.colmap`).
     view_cameras : (K,) ints or None, default None
         Each view's camera, for photos of several cameras (each its own focal
         length, started as COLMAP does); None: one camera for all.
@@ -170,7 +170,7 @@ def colmap_map(tracks: Tracks, *, camera: str = "auto", principal_point=None, im
         start = time.perf_counter()
         colmap.verify_matches(database, threads=threads, seed=seed)
         seconds["verify_s"] = time.perf_counter() - start
-        model = MAPPING[mapper](database, folder, folder / "sparse", threads=threads, seed=seed)
+        model = MAPPING[mapper](database, folder, folder / "sparse", seed=seed)
     if model is None or len(model.images) < colmap.MIN_REGISTERED:
         start = "initial pair" if mapper == "incremental" else "rotation averaging"
         raise Unregistered(f"COLMAP's {mapper} mapper registered no two views: its geometric verification or "

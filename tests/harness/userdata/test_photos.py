@@ -11,6 +11,7 @@ from mpe3d.harness.scene import rendering, shapes
 from mpe3d.harness.userdata import photo_folder, photos
 from mpe3d.harness.userdata.formats import read_points
 from mpe3d.harness.userdata.reconstruct import prepare, reconstruct
+from mpe3d.solvers import threads
 from mpe3d.solvers.sfm import colmap, colmap_mapper
 from mpe3d.solvers.sfm.tracks import Tracks
 from tests.helpers import close_up_keypoints, similarity_rms
@@ -55,9 +56,11 @@ def _centre_error(report: dict, true_centres: dict) -> float:
 def test_a_folder_of_photos_reconstructs_end_to_end(shoot, tmp_path, capsys, solver, method):
     folder, true_centres = shoot
     out, report = tmp_path / "cloud.csv", tmp_path / "report.json"
-    assert main(["reconstruct", str(folder), "--out", str(out), "--report", str(report),
-                 "--solver", solver]) == 0
-    summary = json.loads(report.read_text())
+    with threads.limit(2):  # every COLMAP step that can take two does; the seed still repeats the run
+        runs = [main(["reconstruct", str(folder), "--out", str(out), "--report", str(report),
+                      "--solver", solver]) == 0 and json.loads(report.read_text()) for _ in range(2)]
+    summary = runs[0]
+    assert summary and summary["cameras"] == runs[1]["cameras"] and summary["unplaced"] == runs[1]["unplaced"]
     assert summary["solver"] == solver and summary["objective"] == "reprojection"
     registered = [c for c in summary["cameras"] if c.get("registered", True)]
     assert len(registered) >= 8 and summary["points"] >= 200
@@ -88,6 +91,23 @@ def test_a_colmap_database_is_read_by_its_raw_or_verified_matches(database, tmp_
     assert main(["reconstruct", str(database), "--matches", matches, "--out", str(tmp_path / "c.csv"),
                  "--report", str(report)]) == 0
     assert json.loads(report.read_text())["reprojection_rms_px"] < 1.5
+
+
+def test_two_threads_extract_match_and_verify_as_one_does(shoot, database, tmp_path):
+    """The extractor's threads write the photos as they finish them: numbered
+    again in name order, the pairs (and so RANSAC's samples) are the same."""
+    folder, _ = shoot
+    again = tmp_path / "again.db"
+    colmap.extract_and_match(again, folder, photo_folder.list_photos(folder), threads=2)
+    found = []
+    for path in (database, again):
+        with pycolmap.Database.open(str(path)) as db:
+            images = sorted(db.read_all_images(), key=lambda im: im.image_id)
+            pair_ids, geometries = db.read_two_view_geometries()
+            found.append(([im.name for im in images], [im.camera_id for im in images],
+                          sorted((p, g.inlier_matches.tobytes()) for p, g in zip(pair_ids, geometries))))
+    assert found[0][0] == sorted(found[0][0]) and found[0][1] == list(range(1, len(found[0][1]) + 1))
+    assert found[0] == found[1]
 
 
 def test_raw_matches_hold_what_verification_threw_away(database):
@@ -141,13 +161,13 @@ def test_colmap_solves_any_keypoint_input_with_the_users_ids(solver):
 
 
 @pytest.mark.parametrize("mapper", ["incremental", "global"])
-def test_colmaps_mappers_repeat_with_a_seed_and_one_thread(mapper):
-    """With one thread every random choice of COLMAP takes the seed: the same
-    seed, the same cameras and points to the last bit (module docstring of
-    :mod:`mpe3d.solvers.sfm.colmap`)."""
+def test_colmaps_mappers_repeat_with_a_seed_on_any_thread_count(mapper):
+    """Every random choice of COLMAP takes the seed, and its mappers run on
+    one thread: the same seed, the same cameras and points to the last bit
+    (module docstring of :mod:`mpe3d.solvers.sfm.colmap`)."""
     tracks = Tracks.from_observations(prepare(close_up_keypoints(n=200, views=8), solver="colmap").observations)
-    runs = [colmap_mapper.colmap_map(tracks, seed=3, threads=1, principal_point=(200.0, 200.0), mapper=mapper)
-            for _ in range(2)]
+    runs = [colmap_mapper.colmap_map(tracks, seed=3, threads=t, principal_point=(200.0, 200.0), mapper=mapper)
+            for t in (1, 2)]
     assert runs[0].registered.all() and f"COLMAP's {mapper} mapper" in runs[0].termination
     assert np.array_equal(runs[0].cameras.vector(), runs[1].cameras.vector())
     assert np.array_equal(runs[0].cameras.rotations, runs[1].cameras.rotations)
