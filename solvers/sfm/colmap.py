@@ -15,8 +15,8 @@ verification repeat bit for bit on any thread count, once the photos are
 numbered in name order (:func:`_in_name_order`). The mappers do not:
 their solves (Ceres) sum in thread order, and a mapper's choices amplify the
 last digits, so on two threads one seed gave 9, 10 or 12 of 12 views
-registered from run to run. The mappers therefore always run on one thread,
-at about a fifth more mapping time (docs/methods/colmap.md).
+registered from run to run. The mappers therefore always run on one thread
+(on two cores, about a fifth more mapping time: docs/methods/colmap.md).
 
 One module for all of it, past 500 lines (tests/test_architecture.py says
 why): one place calls pycolmap, and a test holds every other module to that;
@@ -95,8 +95,9 @@ def _asked(what: str, culprit) -> Iterator[None]:
 # -- scratch folders ----------------------------------------------------------------
 
 def scratch_bytes(photos: int, max_features: int, pairs: int, verified: bool) -> int:
-    """What a database of ``photos`` and ``pairs`` matched pairs takes, at most."""
-    return int(SCRATCH_MARGIN * (photos * max_features * FEATURE_BYTES
+    """What a database of ``photos`` and ``pairs`` matched pairs takes, at most:
+    its features twice (numbered in name order, they are copied once)."""
+    return int(SCRATCH_MARGIN * (2 * photos * max_features * FEATURE_BYTES
                                  + pairs * max_features * MATCH_BYTES * (2 if verified else 1)))
 
 
@@ -377,45 +378,42 @@ def _in_name_order(database: Path) -> None:
     photo when they finish it, so its numbers vary from run to run; and they
     order every pair of a match (a < b), which RANSAC samples by, and the
     views. Renumbered, verification and the views repeat on any thread count.
-    A database of rigs (a frame of several images) is left as written."""
+    The photos are copied one at a time into a new file beside it, which then
+    replaces it (a camera no photo uses is left out). A database of rigs (a
+    frame of several images) is left as written."""
     pycolmap = _pycolmap()
+    ordered = database.with_name(database.name + ".ordered")
     with pycolmap.Database.open(str(database)) as db:
         images = sorted(db.read_all_images(), key=lambda im: im.name)
-        frames = {f.frame_id: f for f in db.read_all_frames()}
-        cameras = {c.camera_id: c for c in db.read_all_cameras()}
         first_use = list(dict.fromkeys(im.camera_id for im in images))
-        in_order = [im.image_id for im in images] == list(range(1, len(images) + 1)) \
-            and first_use == list(range(1, len(cameras) + 1))
-        if in_order or any(f.num_data_ids() != 1 for f in frames.values()) or len(first_use) != len(cameras):
+        if ([im.image_id for im in images] == list(range(1, len(images) + 1))
+                and first_use == list(range(1, db.num_cameras() + 1))
+                or any(f.num_data_ids() != 1 for f in db.read_all_frames())):
             return
-        features = [(db.read_keypoints(im.image_id), db.read_descriptors(im.image_id)) for im in images]
+        cameras = {c.camera_id: c for c in db.read_all_cameras()}
         priors = {p.corr_data_id.id: p for p in db.read_all_pose_priors()}
-        db.clear_all_tables()
-        sensors = {}  # SQLite keeps counting after a clear: every number is written, from 1
-        for number, old_id in enumerate(first_use, 1):
-            camera, rig = cameras[old_id], pycolmap.Rig()
-            camera.camera_id = rig.rig_id = number
-            db.write_camera(camera, use_camera_id=True)
-            rig.add_ref_sensor(camera.sensor_id)
-            sensors[old_id] = (camera, db.write_rig(rig, use_rig_id=True))
-        for image_id, (image, (keypoints, descriptors)) in enumerate(zip(images, features), 1):
-            camera, rig_id = sensors[image.camera_id]
-            frame = pycolmap.Frame()
-            frame.frame_id, frame.rig_id = image_id, rig_id
-            frame.add_data_id(pycolmap.data_t(camera.sensor_id, image_id))
-            written = pycolmap.Image(name=image.name, camera_id=camera.camera_id)
-            written.image_id = image_id
-            db.write_image(written, use_image_id=True)
-            db.write_frame(frame, use_frame_id=True)
-            written = db.read_image(image_id)
-            written.frame_id = image_id
-            db.update_image(written)
-            db.write_keypoints(image_id, keypoints)
-            db.write_descriptors(image_id, descriptors)
-            prior = priors.get(image.image_id)
-            if prior is not None:
-                prior.corr_data_id = pycolmap.data_t(camera.sensor_id, image_id)
-                db.write_pose_prior(prior)
+        ordered.unlink(missing_ok=True)
+        with pycolmap.Database.open(str(ordered)) as out, pycolmap.DatabaseTransaction(out):
+            sensors = {}
+            for old_id in first_use:
+                camera, rig = cameras[old_id], pycolmap.Rig()
+                camera.camera_id = out.write_camera(camera)
+                rig.add_ref_sensor(camera.sensor_id)
+                sensors[old_id] = (camera, out.write_rig(rig))
+            for image in images:
+                camera, rig_id = sensors[image.camera_id]
+                image_id = out.write_image(pycolmap.Image(name=image.name, camera_id=camera.camera_id))
+                frame = pycolmap.Frame()
+                frame.rig_id = rig_id
+                frame.add_data_id(pycolmap.data_t(camera.sensor_id, image_id))
+                out.write_frame(frame)
+                out.write_keypoints(image_id, db.read_keypoints(image.image_id))
+                out.write_descriptors(image_id, db.read_descriptors(image.image_id))
+                prior = priors.get(image.image_id)
+                if prior is not None:
+                    prior.corr_data_id = pycolmap.data_t(camera.sensor_id, image_id)
+                    out.write_pose_prior(prior)
+    ordered.replace(database)
 
 
 def verify_matches(database: Path, *, threads: int = 1, seed: int = 0) -> None:

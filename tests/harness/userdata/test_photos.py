@@ -56,11 +56,14 @@ def _centre_error(report: dict, true_centres: dict) -> float:
 def test_a_folder_of_photos_reconstructs_end_to_end(shoot, tmp_path, capsys, solver, method):
     folder, true_centres = shoot
     out, report = tmp_path / "cloud.csv", tmp_path / "report.json"
+    runs = []
     with threads.limit(2):  # every COLMAP step that can take two does; the seed still repeats the run
-        runs = [main(["reconstruct", str(folder), "--out", str(out), "--report", str(report),
-                      "--solver", solver]) == 0 and json.loads(report.read_text()) for _ in range(2)]
+        for _ in range(2):
+            assert main(["reconstruct", str(folder), "--out", str(out), "--report", str(report),
+                         "--solver", solver]) == 0
+            runs.append(json.loads(report.read_text()))
     summary = runs[0]
-    assert summary and summary["cameras"] == runs[1]["cameras"] and summary["unplaced"] == runs[1]["unplaced"]
+    assert summary["cameras"] == runs[1]["cameras"] and summary["unplaced"] == runs[1]["unplaced"]
     assert summary["solver"] == solver and summary["objective"] == "reprojection"
     registered = [c for c in summary["cameras"] if c.get("registered", True)]
     assert len(registered) >= 8 and summary["points"] >= 200
@@ -108,6 +111,44 @@ def test_two_threads_extract_match_and_verify_as_one_does(shoot, database, tmp_p
                           sorted((p, g.inlier_matches.tobytes()) for p, g in zip(pair_ids, geometries))))
     assert found[0][0] == sorted(found[0][0]) and found[0][1] == list(range(1, len(found[0][1]) + 1))
     assert found[0] == found[1]
+
+
+def test_a_database_written_out_of_name_order_is_numbered_in_it(tmp_path):
+    """As the extractor's threads may leave it: photos written last name
+    first, two cameras shared among them, descriptors and a pose prior."""
+    names = [f"p{k}.jpg" for k in range(5)]
+    cameras = [colmap.simple_camera("SIMPLE_RADIAL", 320, 240, f, (160.0, 120.0)) for f in (300.0, 500.0)]
+    camera_of = np.array([0, 1, 0, 1, 1])  # of the names in the order written: last name first
+    rng = np.random.default_rng(0)
+    keypoints = [rng.uniform(0, 200, (10 + k, 2)) for k in range(5)]
+    path = tmp_path / "database.db"
+    colmap.write_database(path, names[::-1], cameras, camera_of, keypoints, np.zeros((0, 2), int), [])
+    with pycolmap.Database.open(str(path)) as db:
+        for image in db.read_all_images():
+            db.write_descriptors(image.image_id, pycolmap.FeatureDescriptors(
+                pycolmap.FeatureExtractorType.SIFT, np.full((db.num_keypoints_for_image(image.image_id), 128),
+                                                            ord(image.name[1]), dtype=np.uint8)))
+            if image.name == "p3.jpg":
+                prior = pycolmap.PosePrior()
+                prior.corr_data_id = pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA,
+                                                                       image.camera_id), image.image_id)
+                prior.position = np.array([48.1, 11.5, 520.0])
+                db.write_pose_prior(prior)
+    colmap._in_name_order(path)
+    with pycolmap.Database.open(str(path)) as db:
+        images = sorted(db.read_all_images(), key=lambda im: im.image_id)
+        assert [im.name for im in images] == names and [im.image_id for im in images] == [1, 2, 3, 4, 5]
+        focal = {im.name: db.read_camera(im.camera_id).params[0] for im in images}
+        assert focal == {"p4.jpg": 300.0, "p3.jpg": 500.0, "p2.jpg": 300.0, "p1.jpg": 500.0, "p0.jpg": 500.0}
+        assert [im.camera_id for im in images] == [1, 1, 2, 1, 2]  # numbered by first use in name order
+        for k, image in enumerate(images):
+            assert np.array_equal(db.read_keypoints(image.image_id)[:, :2], keypoints[4 - k].astype(np.float32))
+            descriptors = db.read_descriptors(image.image_id)
+            assert descriptors.type == pycolmap.FeatureExtractorType.SIFT and np.all(descriptors.data == ord(f"{k}"))
+            assert db.read_frame(image.frame_id).rig_id == image.camera_id
+        (prior,) = db.read_all_pose_priors()
+        assert prior.corr_data_id.id == 4 and np.allclose(prior.position, [48.1, 11.5, 520.0])
+    assert [p.name for p in tmp_path.iterdir()] == ["database.db"]  # the copy replaced it
 
 
 def test_raw_matches_hold_what_verification_threw_away(database):
@@ -161,13 +202,21 @@ def test_colmap_solves_any_keypoint_input_with_the_users_ids(solver):
 
 
 @pytest.mark.parametrize("mapper", ["incremental", "global"])
-def test_colmaps_mappers_repeat_with_a_seed_on_any_thread_count(mapper):
+def test_colmaps_mappers_repeat_with_a_seed_on_any_thread_count(mapper, monkeypatch):
     """Every random choice of COLMAP takes the seed, and its mappers run on
     one thread: the same seed, the same cameras and points to the last bit
     (module docstring of :mod:`mpe3d.solvers.sfm.colmap`)."""
     tracks = Tracks.from_observations(prepare(close_up_keypoints(n=200, views=8), solver="colmap").observations)
+    real, asked = getattr(pycolmap, f"{mapper}_mapping"), []
+
+    def mapping(*args, options, **kwargs):  # COLMAP's own mapper, its thread count noted
+        asked.append(options.num_threads)
+        return real(*args, options=options, **kwargs)
+
+    monkeypatch.setattr(pycolmap, f"{mapper}_mapping", mapping)
     runs = [colmap_mapper.colmap_map(tracks, seed=3, threads=t, principal_point=(200.0, 200.0), mapper=mapper)
             for t in (1, 2)]
+    assert asked == [1, 1]
     assert runs[0].registered.all() and f"COLMAP's {mapper} mapper" in runs[0].termination
     assert np.array_equal(runs[0].cameras.vector(), runs[1].cameras.vector())
     assert np.array_equal(runs[0].cameras.rotations, runs[1].cameras.rotations)
