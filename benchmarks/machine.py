@@ -90,10 +90,11 @@ def describe(repeats: int = 3) -> dict:
     """The CPU's name, its logical CPUs, and the best of ``repeats`` timings of
     the same loop alone and on every logical CPU at once."""
     cpus = os.cpu_count() or 1
-    solo = min(at_once(1) for _ in range(repeats))
-    together = min(at_once(cpus) for _ in range(repeats))
-    return {"cpu": cpu_name(), "logical_cpus": cpus, "solo_s": round(solo, 3),
-            "all_at_once_s": round(together, 3), "parallel_share": round(solo / together, 2)}
+    # rounded first, so that the share printed is the ratio of the times printed
+    solo = round(min(at_once(1) for _ in range(repeats)), 3)
+    together = round(min(at_once(cpus) for _ in range(repeats)), 3)
+    return {"cpu": cpu_name(), "logical_cpus": cpus, "solo_s": solo,
+            "all_at_once_s": together, "parallel_share": round(solo / together, 2)}
 
 
 if __name__ == "__main__":
