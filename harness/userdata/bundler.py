@@ -112,7 +112,33 @@ def _read_bal(path: Path) -> list[dict]:
                   cameras[:, 3:6], cameras[:, 6], cameras[:, 7:9], points)
 
 
+def read_bundle_poses(path: str | Path) -> list[tuple[np.ndarray, np.ndarray] | None]:
+    """Each camera's pose (R, t) in a Bundler ``.out``, in mpe3d's (COLMAP's)
+    frame, whether or not a point is seen in it (a reference may hold poses
+    alone); None for a camera Bundler left out (focal length 0)."""
+    path = Path(path)
+    cameras = _bundler_parts(path)[0]
+    poses = []
+    for k, camera in enumerate(cameras):
+        if not camera[0] > 0:
+            poses.append(None)
+            continue
+        R = camera[3:12].reshape(3, 3)
+        if np.abs(R @ R.T - np.eye(3)).max() > 1e-6 or np.linalg.det(R) < 0:
+            raise MpeError(f"{path}: camera {k}: its rotation is not a rotation matrix")
+        poses.append((FLIP @ R, FLIP @ camera[12:15]))
+    return poses
+
+
 def _read_bundler(path: Path) -> list[dict]:
+    cameras, view, point, xy, points = _bundler_parts(path)
+    rotations = cameras[:, 3:12].reshape(len(cameras), 3, 3)
+    return _views(path, view, point, xy, rotations, cameras[:, 12:15], cameras[:, 0], cameras[:, 1:3], points)
+
+
+def _bundler_parts(path: Path):
+    """A Bundler file's cameras (n, 15: f, k1, k2, R, t), and its observations
+    (view, point, xy) and points, checked."""
     with open(path, encoding="utf-8", errors="replace") as handle:
         handle.readline()
         n_cameras, n_points = _counts(path, handle.readline().split(), 2, "line 2")
@@ -147,10 +173,9 @@ def _read_bundler(path: Path) -> list[dict]:
         j = int(np.argmax(bad))
         raise MpeError(f"{path}: an observation names camera {view[j]:g}, not one of "
                        f"0..{n_cameras - 1}")
-    rotations = cameras[:, 3:12].reshape(n_cameras, 3, 3)
-    return _views(path, view.astype(np.int64), np.concatenate(point).astype(np.int64),
-                  np.concatenate(xy).reshape(-1, 2), rotations, cameras[:, 12:15], cameras[:, 0],
-                  cameras[:, 1:3], points)
+    point = np.concatenate(point) if point else np.zeros(0)  # a file of cameras alone has none
+    xy = np.concatenate(xy) if xy else np.zeros((0, 2))
+    return cameras, view.astype(np.int64), point.astype(np.int64), xy.reshape(-1, 2), points
 
 
 def _views(path, view, point, xy, rotations, translations, focal, distortion, points):

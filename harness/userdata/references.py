@@ -132,9 +132,7 @@ def _read_bundler(path: Path, photo_names) -> Reference:
         raise MpeError(f"{path}: not a Bundler .out file (first line '{bundler.BUNDLER_HEADER}')")
     cameras = _camera_count(path)
     names = _camera_names(path, cameras, photo_names)
-    views = bundler.read_bundle_file(path)  # the cameras with points seen, in mpe3d's (COLMAP's) frame
-    poses = {names[int(v["name"])]: (v["start_camera"]["rotation"], v["start_camera"]["translation"])
-             for v in views}
+    poses = {names[k]: pose for k, pose in enumerate(bundler.read_bundle_poses(path)) if pose is not None}
     if not poses:
         raise MpeError(f"{path}: the Bundler file poses no camera (every one unregistered)")
     return Reference(poses, str(path), cameras, tuple(n for n in names if n not in poses))

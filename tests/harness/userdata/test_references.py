@@ -35,17 +35,18 @@ def write_colmap(folder, poses, size=200, focal=300.0):
     return folder
 
 
-def write_bundler(path, poses: list, focal=300.0):
+def write_bundler(path, poses: list, focal=300.0, point=True):
     """A Bundler v0.3 file written here, not by mpe3d's writer: cameras in
     Bundler's frame (R_b = F R, t_b = F t), None an unregistered camera (all
-    zeros), and one point seen by every registered camera."""
-    lines = ["# Bundle file v0.3", f"{len(poses)} 1"]
+    zeros), and one point seen by every registered camera (or none)."""
+    lines = ["# Bundle file v0.3", f"{len(poses)} {int(point)}"]
     for pose in poses:
         R, t = (np.zeros((3, 3)), np.zeros(3)) if pose is None else (FLIP @ pose[0], FLIP @ pose[1])
         lines += [f"{0.0 if pose is None else focal:.17g} 0 0", *(" ".join(f"{v:.17g}" for v in row) for row in R),
                   " ".join(f"{v:.17g}" for v in t)]
     seen = [k for k, pose in enumerate(poses) if pose is not None]
-    lines += ["0 0 0", "128 128 128", " ".join([str(len(seen))] + [f"{k} {k} 1.5 -2.5" for k in seen])]
+    if point:
+        lines += ["0 0 0", "128 128 128", " ".join([str(len(seen))] + [f"{k} {k} 1.5 -2.5" for k in seen])]
     path.write_text("\n".join(lines) + "\n")
     return path
 
@@ -299,3 +300,12 @@ def test_a_model_of_poses_alone_without_points3d_is_a_reference(poses, tmp_path,
         part.unlink()
     reference = read_reference(model, NAMES)
     assert sorted(reference.poses) == NAMES and all(np.allclose(reference.poses[n][0], poses[n][0]) for n in NAMES)
+
+
+def test_a_bundler_file_of_poses_alone_is_a_reference(poses, tmp_path):
+    """No point at all (a converted or hand-made reference): a camera is posed
+    by its own block, not by the points seen in it."""
+    path = write_bundler(tmp_path / "bundle.out", [poses["a.jpg"], None, poses["c.jpg"], poses["d.jpg"]], point=False)
+    reference = read_reference(path, photo_names=NAMES)
+    assert sorted(reference.poses) == ["a.jpg", "c.jpg", "d.jpg"] and reference.unposed == ("b.jpg",)
+    assert all(np.allclose(reference.poses[n][1], poses[n][1]) for n in ["a.jpg", "c.jpg", "d.jpg"])
