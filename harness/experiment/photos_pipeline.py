@@ -39,7 +39,7 @@ from mpe3d.harness.experiment.result import RunResult, short_number
 from mpe3d.harness.scene.metrics import score_poses
 from mpe3d.harness.scene.observe import Scene
 from mpe3d.harness.userdata import photos
-from mpe3d.harness.userdata.references import Reference, poses_of, read_reference
+from mpe3d.harness.userdata.references import Reference, poses_of, read_reference, unscored
 from mpe3d.solvers.sfm import methods
 
 POSE_KEYS = ("pose_auc1", "pose_auc3", "pose_auc5", "pose_auc10")
@@ -115,9 +115,10 @@ def _built_in(views: list[dict], method: str, rng) -> Solved:
 
     result = solve_problem(prepare(views, solver=method, random_state=rng))
     report = result.report
+    why = unscored(result)
     return Solved(poses_of(result), len(result.ids) - len(result.unplaced), float(report["reprojection_rms_px"]),
                   float(report["runtime_s"]), str(report["termination"]), dict(report.get("colmap_seconds", {})),
-                  list(result.warnings))
+                  [*result.warnings, *([why] if why else [])])
 
 
 def sfm_views(views: list[dict]) -> list[methods.SfmView]:

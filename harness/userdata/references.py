@@ -171,6 +171,17 @@ def _list_name(line: str) -> str:
     return _base(line.split()[0])
 
 
+def unscored(result) -> str | None:
+    """Why views the solve registered have no pose to score (an affine
+    camera: no centre), or None when every registered view has one."""
+    affine = [c.view for c in result.cameras if c.registered and c.rotation is not None and c.translation is None]
+    if not affine:
+        return None
+    return (f"{len(affine)} registered views have an affine camera (the photos showed too little perspective for "
+            "camera=auto to keep the pinhole): an affine camera has no centre, so they score as unregistered "
+            "(ask the camera perspective or radial to score them)")
+
+
 def poses_of(result) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     """``{view name: (R, t)}`` of a :class:`~mpe3d.harness.userdata.results.Result`'s
     registered pinhole cameras. An affine camera (no translation along its

@@ -133,7 +133,10 @@ def cmd_reconstruct(args) -> int:
     extra = {"input": str(args.input), "output": str(model or out)}
     scores = _scored(reference, result, args.seed) if reference else None
     if scores:
+        from mpe3d.harness.userdata.references import unscored
+
         extra["reference"] = scores
+        result.warnings.extend(filter(None, [unscored(result)]))
     if model:
         from mpe3d.harness.userdata.colmap_model import write_model_folder
 

@@ -9,7 +9,7 @@ from mpe3d.cli import main
 from mpe3d.errors import MpeError
 from mpe3d.harness.scene import rendering, shapes
 from mpe3d.harness.scene.metrics import pose_auc, score_poses
-from mpe3d.harness.userdata.references import poses_of, read_reference
+from mpe3d.harness.userdata.references import poses_of, read_reference, unscored
 from mpe3d.harness.userdata.results import Result, ViewCamera
 from mpe3d.solvers.sfm import colmap
 from tests.harness import colmap_evaluation as colmap_eval
@@ -146,6 +146,18 @@ def test_poses_of_keeps_registered_pinholes_only(poses):
                ViewCamera("c.jpg", np.full((3, 4), np.nan), registered=False))
     result = Result(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2, 3)), cameras=cameras)
     assert list(poses_of(result)) == ["a.jpg"]
+    assert unscored(result).startswith("1 registered views have an affine camera")
+    assert unscored(Result(np.zeros((0, 3)), np.zeros(0), np.zeros((0, 2, 3)), cameras=cameras[::2])) is None
+
+
+def test_an_affine_camera_scored_against_a_reference_says_why_it_scores_nothing(rendered, tmp_path, capsys):
+    folder, _ = rendered
+    report = tmp_path / "r.json"
+    assert main(["reconstruct", str(folder / "images"), "--reference", str(folder / "sparse" / "0"),
+                 "--camera", "scaled", "--out", str(tmp_path / "c.csv"), "--report", str(report)]) == 0
+    scores = json.loads(report.read_text())["reference"]
+    assert scores["registered"] == 0 and scores["pose_auc3"] == 0
+    assert "6 registered views have an affine camera" in capsys.readouterr().err
 
 
 # -- the command line, on rendered photos ---------------------------------------------
