@@ -89,12 +89,10 @@ def synthetic_views(seed: int, exif: bool) -> tuple[list[SfmView], dict[str, tup
 def _look_at(angle: float, distance: float, height: float) -> tuple[np.ndarray, np.ndarray]:
     """World -> camera of a camera at ``angle`` on a circle round the origin, looking at it
     (y down in the image, as in pixels)."""
+    from mpe3d.harness.scene.rendering import look_at  # here: it loads trimesh and numba
+
     position = np.array([distance * np.sin(angle), height, -distance * np.cos(angle)])
-    forward = -position / np.linalg.norm(position)
-    right = np.cross([0.0, -1.0, 0.0], forward)
-    right /= np.linalg.norm(right)
-    down = np.cross(forward, right)
-    R = np.stack([right, down, forward])
+    R = look_at(position[None])[0]
     return R, -R @ position
 
 

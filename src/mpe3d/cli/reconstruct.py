@@ -199,7 +199,7 @@ def _reference(text: str, photos: str):
     try:
         return read_reference(text, names)
     except MpeError as exc:
-        raise type(exc)(f"--reference {exc}") from None
+        raise type(exc)(f"--reference {exc.message}", exc.key, exc.hint) from None
 
 
 def _scored(reference, result, seed: int) -> dict:
